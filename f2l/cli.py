@@ -1,0 +1,181 @@
+"""The ``f2l`` command line (typer). Thin: parsing, progress and exit codes; no algorithms here."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from f2l import __version__
+
+app = typer.Typer(
+    name="f2l",
+    help="f2l — faces to light: HDR outdoor light probes from photographs of faces.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(f"f2l {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True, help="Show the version and exit."),
+) -> None:
+    """f2l — faces to light."""
+
+
+def _grid(grid: str):
+    from f2l.lighting.grid import LatLongGrid
+
+    try:
+        h, w = (int(v) for v in grid.lower().split("x"))
+        return LatLongGrid(h, w)
+    except Exception as exc:  # noqa: BLE001
+        raise typer.BadParameter(f"--grid must look like 64x128: {exc}") from exc
+
+
+@app.command()
+def models(json_out: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
+    """List the installed lighting models (entry-point group f2l.lighting_models)."""
+    from f2l.lighting.grid import LatLongGrid
+    from f2l.models.registry import discover
+
+    rows = []
+    grid = LatLongGrid(8, 16)
+    for name, info in discover().items():
+        row = {"name": name, "package": info.package, "target": info.target, "ok": info.ok}
+        if info.ok:
+            inst = info.cls(grid)
+            row.update(params=inst.num_params, domain=inst.domain, version=inst.version, description=inst.description)
+        else:
+            row.update(error=info.error)
+        rows.append(row)
+    if json_out:
+        typer.echo(json.dumps(rows, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="f2l lighting models")
+    for col in ("name", "params", "domain", "package", "description"):
+        table.add_column(col)
+    for r in rows:
+        if r["ok"]:
+            table.add_row(r["name"], str(r["params"]), r["domain"], r["package"], r["description"])
+        else:
+            table.add_row(r["name"], "-", "-", r["package"], f"[red]failed to load: {r['error']}[/red]")
+    Console().print(table)
+
+
+@app.command()
+def synth(
+    out: Path = typer.Option(..., "--out", help="Output shard directory."),
+    n: int = typer.Option(12, "--n", help="Number of synthetic faces."),
+    seed: int = typer.Option(0, help="Random seed (everything is deterministic from it)."),
+    grid: str = typer.Option("64x128", help="Lighting grid HxW."),
+    image_size: int = typer.Option(128, help="Photo size in pixels (square)."),
+    overcast_fraction: float = typer.Option(0.25, help="Fraction of overcast skies."),
+    noise: float = typer.Option(0.002, help="Sensor noise sigma (linear units)."),
+    specular: float = typer.Option(0.0, help="Strength of an optional specular highlight."),
+    visibility: str = typer.Option("adaptive", help="Visibility method: adaptive or exact."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Render synthetic faces under known probes into shards (ground truth included)."""
+    from f2l.synth.dataset import write_synthetic_shards
+
+    summary = write_synthetic_shards(
+        out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
+        noise_sigma=noise, specular=specular, visibility_method=visibility, progress=not json_out,
+    )
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+
+
+@app.command()
+def estimate(
+    shards: list[Path] = typer.Argument(..., help="Shard directories or .parquet files."),
+    model: list[str] = typer.Option(..., "--model", "-m", help="Lighting model name (repeatable)."),
+    out: Path = typer.Option(..., "--out", help="Output directory (estimates.parquet, probes/, previews/)."),
+    workers: int = typer.Option(1, help="Parallel worker processes."),
+    threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
+    max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
+    max_iter: int = typer.Option(60, help="L-BFGS iterations."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Estimate an HDR probe for every face record with the given lighting model(s)."""
+    from f2l.estimate.runner import run_estimates
+
+    summary = run_estimates(
+        shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
+        max_iter=max_iter, progress=not json_out,
+    )
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if summary["ok"] == 0 and summary["total"] > 0:
+        raise typer.Exit(code=1)
+
+
+@app.command()
+def evaluate(
+    estimates_dir: Path = typer.Argument(..., help="Directory written by `f2l estimate`."),
+    shards: Optional[list[Path]] = typer.Option(None, "--shards", help="Shards with ground truth (default: recorded)."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """The seven §5.1 metrics per face (CSV) and mean ± std per model (Markdown + CSV)."""
+    from f2l.metrics.evaluate import evaluate_estimates
+
+    result = evaluate_estimates(estimates_dir, shards)
+    if json_out:
+        typer.echo(json.dumps(result["summary_rows"], indent=2))
+    else:
+        typer.echo(result["markdown"])
+        typer.echo(f"\nwrote {result['per_face_csv']}, {result['summary_csv']}, {result['summary_md']}")
+
+
+@app.command()
+def bench(
+    faces: int = typer.Option(1, help="Number of synthetic faces."),
+    model: Optional[list[str]] = typer.Option(None, "--model", "-m", help="Models (default: all installed)."),
+    out: Path = typer.Option(Path("bench_out"), "--out", help="Output directory (table, plot)."),
+    image_size: int = typer.Option(128, help="Synthetic photo size (128 gives ~10k face pixels)."),
+    grid: str = typer.Option("64x128", help="Lighting grid HxW."),
+    threads: int = typer.Option(2, help="Threads."),
+    seed: int = typer.Option(1, help="Seed of the synthetic set."),
+) -> None:
+    """Error versus run time of the installed models on synthetic faces (table + PNG plot)."""
+    from f2l.bench import run_bench
+
+    result = run_bench(faces=faces, models=model, out_dir=out, image_size=image_size, grid=_grid(grid), threads=threads, seed=seed)
+    typer.echo(result["markdown"])
+    typer.echo(f"\nwrote {result['table_md']}, {result['plot_png']}")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("demo_out"), "--out", help="Output directory."),
+    n: int = typer.Option(12, "--n", help="Number of synthetic faces."),
+    seed: int = typer.Option(0, help="Seed."),
+    model: Optional[list[str]] = typer.Option(None, "--model", "-m", help="Models (default: all built-in)."),
+) -> None:
+    """Synthesise faces, estimate with every built-in model, evaluate, and write pictures."""
+    from f2l.demo import run_demo
+
+    run_demo(out, n=n, seed=seed, models=model)
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,332 @@
+"""The generic inverse-lighting estimator (paper §3.2), shared by every lighting model.
+
+Shading of face pixel p:  s_p = rho ⊙ (T l)_p,  T[p, w] = V(p, w) max(0, <n_p, w>) dOmega_w / pi.
+For ``domain == "sky"`` models the lower hemisphere is a Lambertian ground of unknown grey albedo
+rho_g lit by the sky: l_gnd = rho_g / pi * E_h,  E_h = sum_{w in sky} max(0, w_y) l(w) dOmega_w, so
+T l = T_sky l_sky + g (rho_g / pi) E_h with g = T_gnd 1 (row sums over the ground texels).
+
+Objective (minimised over the model parameters theta, albedo rho in [0,1]^3, rho_g in [0,1]):
+    mean_{p,c} Charbonnier(s - s*) / mean(s*)        (Charbonnier(r) = sqrt(r^2 + eps^2), eps = 1e-6)
+  + w_l psi_l(theta)  (the model's prior NLL)  + w_rho psi_rho(rho)  (skin-albedo GMM NLL)
+  + w_neg * mean_w dOmega relu(-l)^2 / mean(l)^2    (l >= 0, for models that can go negative)
+Bounds are handled by reparameterisation (``BoxTransform``); all starts are optimised together as
+one batched problem with torch's L-BFGS (strong-Wolfe line search). Linear models (``linear_basis``)
+get T @ B precomputed once and least-squares initial points; other models use a rank-k factor of T.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from f2l.estimate.params import BoxTransform
+from f2l.estimate.skin import skin_albedo_gmm, skin_albedo_mean
+from f2l.lighting.grid import LatLongGrid
+from f2l.models.base import LightingModel
+from f2l.transport import Transport
+
+# Observed linear values at or above this are treated as clipped; at or below BLACK as black.
+CLIP_LEVEL = 0.99
+BLACK_LEVEL = 1e-4
+
+
+class EstimationError(ValueError):
+    """A face that cannot be estimated; the message says why."""
+
+
+@dataclass
+class FaceObservation:
+    """What the estimator needs of a face record (arrays over the N face pixels)."""
+
+    normals: np.ndarray  # (N, 3) unit
+    observed_rgb: np.ndarray  # (N, 3) linear
+    mask: np.ndarray  # (N,) bool
+    visibility_bits: np.ndarray  # (N, ceil(L/8)) uint8
+    grid: LatLongGrid
+    face_id: str = ""
+
+
+@dataclass
+class EstimatorConfig:
+    charbonnier_eps: float = 1e-6
+    light_prior_weight: float = 1e-3
+    albedo_prior_weight: float = 1e-3
+    negativity_weight: float = 1.0
+    max_iter: int = 60
+    tolerance: float = 1e-9
+    max_pixels: int | None = None  # subsample usable pixels (deterministic) for speed
+    lowrank_k: int = 96
+    threads: int = 2
+    seed: int = 0
+    fixed_albedo: tuple[float, float, float] | None = None
+    ground_albedo_init: float = 0.2
+    albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
+
+
+@dataclass
+class EstimateResult:
+    params: np.ndarray
+    param_names: list[str]
+    albedo: np.ndarray
+    ground_albedo: float | None
+    loss: float
+    iterations: int
+    converged: bool
+    runtime_s: float
+    probe: np.ndarray  # (H, W, 3) float32, ground included, >= 0
+    sun_direction: np.ndarray | None
+    timings: dict = field(default_factory=dict)
+    start_losses: list = field(default_factory=list)
+    num_pixels_used: int = 0
+
+
+def usable_pixels(obs: FaceObservation) -> np.ndarray:
+    """Indices of pixels usable for fitting; raises EstimationError with counts when none are."""
+    rgb = np.asarray(obs.observed_rgb)
+    n = rgb.shape[0]
+    if n == 0:
+        raise EstimationError("face has no pixels")
+    finite = np.isfinite(rgb).all(1) & np.isfinite(obs.normals).all(1)
+    if not finite.all():
+        raise EstimationError(f"non-finite values in {int((~finite).sum())} of {n} pixels (NaN/inf in record)")
+    clipped = (rgb >= CLIP_LEVEL).any(1)
+    black = (rgb <= BLACK_LEVEL).all(1)
+    keep = np.asarray(obs.mask, dtype=bool) & ~clipped & ~black
+    if keep.sum() < 50:
+        raise EstimationError(
+            f"only {int(keep.sum())} usable pixels of {n} ({int(clipped.sum())} clipped, {int(black.sum())} black, "
+            f"{int((~np.asarray(obs.mask, bool)).sum())} masked out): all-black or fully clipped face"
+        )
+    return np.flatnonzero(keep)
+
+
+def _albedo_prior_nll(rho: torch.Tensor) -> torch.Tensor:
+    """Skin-albedo GMM negative log-likelihood of log(rho), rho (B, 3)."""
+    gmm = skin_albedo_gmm()
+    x = torch.log(rho.clamp_min(1e-6))
+    terms = []
+    for w, mu, cov in zip(gmm["weights"], gmm["means"], gmm["covariances"]):
+        prec = torch.as_tensor(np.linalg.inv(cov), dtype=rho.dtype)
+        d = x - torch.as_tensor(mu, dtype=rho.dtype)
+        logdet = float(np.linalg.slogdet(cov)[1])
+        terms.append(np.log(w) - 0.5 * logdet - 1.5 * np.log(2 * np.pi) - 0.5 * torch.einsum("bi,ij,bj->b", d, prec, d))
+    return -torch.logsumexp(torch.stack(terms, 0), 0)
+
+
+class _Problem:
+    """Precomputed, per-face pieces of the objective."""
+
+    def __init__(self, obs: FaceObservation, model: LightingModel, cfg: EstimatorConfig, dtype=torch.float64):
+        self.grid = obs.grid
+        self.model = model
+        self.cfg = cfg
+        self.dtype = dtype
+        t0 = time.perf_counter()
+        idx = usable_pixels(obs)
+        if cfg.max_pixels and idx.size > cfg.max_pixels:
+            idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_pixels, replace=False))
+        self.idx = idx
+        transport = Transport(obs.visibility_bits[idx], np.asarray(obs.normals, np.float64)[idx], self.grid)
+        self.target = torch.as_tensor(np.asarray(obs.observed_rgb, np.float64)[idx], dtype=dtype)
+        self.target_scale = float(self.target.mean().clamp_min(1e-12))
+        grid = self.grid
+        self.sky = model.domain == "sky"
+        L = grid.size
+        self.L_sky = grid.sky_rows * grid.width
+        self.d_omega = torch.as_tensor(grid.solid_angles_flat, dtype=dtype)
+        upward = np.maximum(grid.directions_flat[: self.L_sky, 1], 0.0) * grid.solid_angles_flat[: self.L_sky]
+        self.e_sky = torch.as_tensor(upward, dtype=dtype)  # E_h = e_sky . l_sky
+        sky_cols = np.zeros(L, dtype=bool)
+        sky_cols[: self.L_sky] = True
+        if self.sky:
+            self.g = torch.as_tensor(transport.row_sums(~sky_cols), dtype=dtype)  # T_gnd 1
+        basis = model.linear_basis()
+        self.linear = basis is not None
+        if self.linear:
+            basis = np.asarray(basis, dtype=np.float64)
+            if self.sky:
+                basis = np.where(sky_cols[:, None], basis, 0.0)
+                self.eB = torch.as_tensor(upward @ basis[: self.L_sky], dtype=dtype)  # (K,)
+            self.basis = torch.as_tensor(basis, dtype=dtype)
+            self.TB = torch.as_tensor(transport.project(basis), dtype=dtype)  # (N, K)
+        else:
+            dense = torch.as_tensor(transport.dense(np.float32))
+            if self.sky:
+                dense = dense[:, : self.L_sky]
+            k = min(cfg.lowrank_k, min(dense.shape) - 1)
+            gen_state = torch.random.get_rng_state()
+            torch.manual_seed(cfg.seed)
+            U, S, V = torch.svd_lowrank(dense, q=k, niter=3)
+            torch.random.set_rng_state(gen_state)
+            del dense
+            self.U = (U * S).to(dtype)
+            self.Vt = V.T.contiguous().to(dtype)
+        self.precompute_s = time.perf_counter() - t0
+
+    # -- forward model -----------------------------------------------------------------------------
+    def light_transport(self, params: torch.Tensor, ground_albedo: torch.Tensor | None):
+        """Returns (T l (B, N, 3), radiance (B, L, 3) or None when not needed)."""
+        if self.linear:
+            coeffs = params.reshape(params.shape[0], -1, 3)
+            tl = torch.einsum("nk,bkc->bnc", self.TB, coeffs)
+            if self.sky:
+                e_h = torch.einsum("k,bkc->bc", self.eB, coeffs)
+                tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
+            return tl, None
+        rad = self.model.radiance(params)
+        if self.sky:
+            l_sky = rad[:, : self.L_sky]
+            tl = torch.einsum("nk,bkc->bnc", self.U, torch.einsum("kl,blc->bkc", self.Vt, l_sky))
+            e_h = torch.einsum("l,blc->bc", self.e_sky, l_sky)
+            tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
+        else:
+            tl = torch.einsum("nk,bkc->bnc", self.U, torch.einsum("kl,blc->bkc", self.Vt, rad))
+        return tl, rad
+
+    def radiance(self, params: torch.Tensor) -> torch.Tensor:
+        if self.linear:
+            return torch.einsum("lk,bkc->blc", self.basis, params.reshape(params.shape[0], -1, 3))
+        return self.model.radiance(params)
+
+    def objective(self, params, albedo, ground_albedo):
+        """Per-start objective (B,) and its data term (B,)."""
+        cfg = self.cfg
+        tl, rad = self.light_transport(params, ground_albedo)
+        pred = albedo[:, None, :] * tl
+        resid = pred - self.target[None]
+        data = torch.sqrt(resid * resid + cfg.charbonnier_eps**2).mean((1, 2)) / self.target_scale
+        total = data + cfg.light_prior_weight * self.model.prior_nll(params)
+        if cfg.fixed_albedo is None:
+            total = total + cfg.albedo_prior_weight * _albedo_prior_nll(albedo)
+        if cfg.negativity_weight > 0 and not self.sky:
+            if rad is None:
+                rad = self.radiance(params)
+            mean_l = (rad.clamp_min(0) * self.d_omega[None, :, None]).sum((1, 2)) / (4 * np.pi * 3)
+            neg = (torch.relu(-rad) ** 2 * self.d_omega[None, :, None]).sum((1, 2)) / (4 * np.pi * 3)
+            total = total + cfg.negativity_weight * neg / (mean_l.detach() ** 2 + 1e-12)
+        return total, data
+
+    # -- initial points ----------------------------------------------------------------------------------
+    def least_squares_start(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
+        """theta minimising ||rho ⊙ (T B theta) - s*||^2 (small ridge), for a linear model."""
+        A = self.TB.numpy()
+        if self.sky:
+            A = A + self.g.numpy()[:, None] * (ground_albedo / np.pi) * self.eB.numpy()[None, :]
+        ridge = 1e-8 * np.trace(A.T @ A) / A.shape[1]
+        lhs = A.T @ A + ridge * np.eye(A.shape[1])
+        rhs = A.T @ (self.target.numpy() / albedo[None, :])
+        return np.linalg.solve(lhs, rhs).reshape(-1)
+
+
+def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig | None = None) -> EstimateResult:
+    """Estimate lighting, albedo and ground albedo for one face with ``model``."""
+    cfg = config or EstimatorConfig()
+    t_start = time.perf_counter()
+    torch.set_num_threads(max(1, cfg.threads))
+    dtype = torch.float64
+    prob = _Problem(obs, model, cfg, dtype)
+
+    # ---- starting points -------------------------------------------------------------------------------
+    lo, hi = model.bounds()
+    box = BoxTransform(lo, hi)
+    gmm = skin_albedo_gmm()
+    if cfg.fixed_albedo is not None:
+        albedo_starts = [np.asarray(cfg.fixed_albedo, dtype=np.float64)]
+    else:
+        order = np.argsort(-gmm["weights"])[: max(1, cfg.albedo_starts)]
+        albedo_starts = [skin_albedo_mean()] + [np.exp(gmm["means"][j]) for j in order[1:]]
+    starts_theta, starts_rho = [], []
+    if prob.linear:
+        for rho in albedo_starts:
+            starts_theta.append(prob.least_squares_start(rho, cfg.ground_albedo_init))
+            starts_rho.append(rho)
+    for theta in model.initial_points():
+        starts_theta.append(np.asarray(theta, dtype=np.float64))
+        starts_rho.append(albedo_starts[0])
+    theta0 = np.stack(starts_theta)
+    rho0 = np.clip(np.stack(starts_rho), 1e-3, 1 - 1e-3)
+    if not prob.linear:
+        # scale non-linear starts so their mean shading matches the observation (cheap, one pass)
+        with torch.no_grad():
+            tl, _ = prob.light_transport(torch.as_tensor(theta0, dtype=dtype),
+                                         torch.full((len(theta0),), cfg.ground_albedo_init, dtype=dtype))
+            pred = (torch.as_tensor(rho0, dtype=dtype)[:, None, :] * tl).mean((1, 2)).numpy()
+        del tl
+        scale = prob.target_scale / np.maximum(pred, 1e-12)
+        theta0 = _scale_intensities(model, theta0, scale, lo, hi)
+
+    x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype, requires_grad=True)
+    x_rho = torch.tensor(np.log(rho0) - np.log1p(-rho0), dtype=dtype, requires_grad=True)
+    g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
+    x_gnd = torch.tensor(np.full(len(theta0), np.log(g0) - np.log1p(-g0)), dtype=dtype, requires_grad=True)
+    variables = [x_theta, x_gnd] + ([x_rho] if cfg.fixed_albedo is None else [])
+    fixed_rho = None if cfg.fixed_albedo is None else torch.as_tensor(np.asarray(cfg.fixed_albedo, np.float64), dtype=dtype)
+
+    def unpack():
+        params = box.to_params(x_theta)
+        rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(theta0), 3)
+        return params, rho, torch.sigmoid(x_gnd)
+
+    optimiser = torch.optim.LBFGS(
+        variables, lr=1.0, max_iter=cfg.max_iter, tolerance_grad=1e-10, tolerance_change=cfg.tolerance,
+        history_size=20, line_search_fn="strong_wolfe",
+    )
+
+    def closure():
+        optimiser.zero_grad()
+        total, _ = prob.objective(*unpack())
+        loss = total.sum()
+        loss.backward()
+        return loss
+
+    t_fit = time.perf_counter()
+    optimiser.step(closure)
+    state = optimiser.state[optimiser._params[0]]
+    iterations = int(state.get("n_iter", 0))
+    with torch.no_grad():
+        params, rho, rho_g = unpack()
+        total, data = prob.objective(params, rho, rho_g)
+    fit_s = time.perf_counter() - t_fit
+    totals = total.numpy()
+    if not np.isfinite(totals).any():
+        raise EstimationError("optimisation diverged: objective is not finite for any start")
+    best = int(np.nanargmin(totals))
+    converged = iterations < cfg.max_iter
+
+    best_params = params[best : best + 1]
+    with torch.no_grad():
+        rad = prob.radiance(best_params)[0].clone()
+        if prob.sky:
+            e_h = (prob.e_sky[:, None] * rad[: prob.L_sky]).sum(0)
+            rad[prob.L_sky :] = rho_g[best] / np.pi * e_h[None, :]
+    probe = np.maximum(rad.numpy(), 0.0).reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
+    if not np.isfinite(probe).all():
+        raise EstimationError("estimated probe is not finite")
+    best_np = best_params[0].numpy().astype(np.float64)
+    runtime = time.perf_counter() - t_start
+    return EstimateResult(
+        params=best_np,
+        param_names=list(model.param_names),
+        albedo=rho[best].numpy().astype(np.float64),
+        ground_albedo=float(rho_g[best]) if prob.sky else None,
+        loss=float(totals[best]),
+        iterations=iterations,
+        converged=bool(converged),
+        runtime_s=runtime,
+        probe=probe,
+        sun_direction=model.sun_direction(best_np),
+        timings={"precompute_s": prob.precompute_s, "fit_s": fit_s, "total_s": runtime},
+        start_losses=[float(v) for v in totals],
+        num_pixels_used=int(prob.idx.size),
+    )
+
+
+def _scale_intensities(model, theta0, scale, lo, hi):
+    """Multiply the non-negative, unbounded-above parameters (intensities) by a per-start scale."""
+    intensity = np.isfinite(lo) & (lo >= 0) & ~np.isfinite(hi)
+    out = theta0.copy()
+    out[:, intensity] *= scale[:, None]
+    return out

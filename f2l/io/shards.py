@@ -1,0 +1,767 @@
+"""Face-record shards: Parquet record files plus EXR/PNG side files (schema ``face_record``).
+
+Layout of a shard directory::
+
+    shards/part-00000.parquet   one row group per record (readers stream one record at a time)
+    shards/part-00001.parquet   ...
+    shards/probes/<face_id>.exr ground-truth probes (float32 lat-long), referenced by gt_probe_path
+    shards/photos/<face_id>.png photo previews, referenced by photo_path
+
+Every file is written atomically (``<name>.<pid>.tmp`` then ``os.replace``), every record is
+validated against ``schemas/face_record.schema.json`` on write and (by default) on read, and a
+reader turns an unreadable file or an invalid record into a :class:`BadRecord` instead of
+raising, so one bad file never stops a batch. :class:`ParquetAppender` and
+:func:`write_table_atomic` do the same for result tables such as ``estimates.parquet``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from f2l.io.schema import (
+    SchemaError,
+    arrow_schema,
+    json_dumps_strict,
+    load_schema,
+    table_errors,
+    validate_table,
+)
+
+__all__ = [
+    "FACE_SCHEMA_NAME",
+    "FaceRecord",
+    "BadRecord",
+    "ShardWriter",
+    "ParquetAppender",
+    "iter_records",
+    "count_records",
+    "shard_files",
+    "write_side_probe",
+    "write_side_photo",
+    "load_gt_probe",
+    "write_table_atomic",
+    "rows_to_table",
+    "table_row",
+    "pack_visibility",
+    "unpack_visibility",
+    "SchemaError",
+]
+
+FACE_SCHEMA_NAME = "face_record"
+_NORMAL_TOLERANCE = 1e-3
+
+
+@lru_cache(maxsize=None)
+def _schema(name: str) -> dict:
+    """Parsed schema, cached (treat as read-only)."""
+    return load_schema(name)
+
+
+def _schema_of(schema: dict | str) -> dict:
+    return _schema(schema) if isinstance(schema, str) else schema
+
+
+def _face_id_pattern() -> re.Pattern:
+    return re.compile(_schema(FACE_SCHEMA_NAME)["properties"]["face_id"]["pattern"])
+
+
+# -- visibility packing ----------------------------------------------------------------------
+def pack_visibility(visible: np.ndarray) -> np.ndarray:
+    """Pack (N, L) bool visibility (row-major texels) to (N, ceil(L/8)) uint8, little bit order."""
+    visible = np.asarray(visible, dtype=bool)
+    if visible.ndim != 2:
+        raise ValueError(f"visibility must be (N, L), got shape {visible.shape}")
+    return np.packbits(visible, axis=1, bitorder="little")
+
+
+def unpack_visibility(bits: np.ndarray, num_texels: int) -> np.ndarray:
+    """Unpack (N, ceil(L/8)) uint8 to (N, L) bool."""
+    return np.unpackbits(bits, axis=1, count=num_texels, bitorder="little").astype(bool)
+
+
+# -- rows <-> Arrow --------------------------------------------------------------------------
+def _list_column(values: list, typ: pa.ListType) -> pa.Array:
+    """A list column from per-row array-likes (numeric lists built from one concatenation)."""
+    vtype = typ.value_type
+    if any(v is None for v in values) or not (
+        pa.types.is_floating(vtype) or pa.types.is_integer(vtype) or pa.types.is_boolean(vtype)
+    ):
+        return pa.array([v.reshape(-1).tolist() if isinstance(v, np.ndarray) else v
+                         for v in values], type=typ)
+    flat = [np.asarray(v).reshape(-1) for v in values]
+    offsets = np.zeros(len(flat) + 1, dtype=np.int32)
+    np.cumsum([f.size for f in flat], out=offsets[1:])
+    dtype = vtype.to_pandas_dtype()
+    concat = np.concatenate(flat) if flat else np.zeros(0, dtype=dtype)
+    if concat.size == 0:
+        concat = concat.astype(dtype)
+    return pa.ListArray.from_arrays(pa.array(offsets, pa.int32()), pa.array(concat, type=vtype))
+
+
+def rows_to_table(rows: Sequence[Mapping[str, Any]], schema: dict | str) -> pa.Table:
+    """Arrow table (schema column order and metadata) from row dicts; numpy arrays are flattened."""
+    schema = _schema_of(schema)
+    aschema = arrow_schema(schema)
+    names = set(aschema.names)
+    for i, row in enumerate(rows):
+        extra = set(row) - names
+        missing = names - set(row)
+        if extra or missing:
+            raise SchemaError(f"{schema.get('title', 'table')} row {i}: "
+                              + (f"missing columns {sorted(missing)} " if missing else "")
+                              + (f"unexpected columns {sorted(extra)}" if extra else ""))
+    arrays = []
+    for fld in aschema:
+        values = [row[fld.name] for row in rows]
+        try:
+            if pa.types.is_list(fld.type):
+                arrays.append(_list_column(values, fld.type))
+            elif pa.types.is_binary(fld.type) or pa.types.is_large_binary(fld.type):
+                arrays.append(pa.array(
+                    [None if v is None else (v.tobytes() if isinstance(v, np.ndarray) else bytes(v))
+                     for v in values], type=fld.type))
+            else:
+                arrays.append(pa.array(values, type=fld.type))
+        except (pa.ArrowInvalid, pa.ArrowTypeError, TypeError, ValueError) as exc:
+            raise SchemaError(f"{schema.get('title', 'table')}: column {fld.name!r} cannot be "
+                              f"stored as {fld.type}: {exc}") from None
+    return pa.Table.from_arrays(arrays, schema=aschema)
+
+
+def table_row(table: pa.Table, index: int) -> dict[str, Any]:
+    """Row ``index`` as a dict: list columns as numpy arrays (copies), binary as uint8 arrays."""
+    row: dict[str, Any] = {}
+    for name in table.column_names:
+        scalar = table.column(name)[index]
+        if not scalar.is_valid:
+            row[name] = None
+        elif isinstance(scalar, pa.ListScalar):
+            vals = scalar.values
+            if pa.types.is_string(vals.type) or pa.types.is_large_string(vals.type):
+                row[name] = vals.to_pylist()
+            else:
+                row[name] = np.array(vals.to_numpy(zero_copy_only=False), copy=True)
+        elif pa.types.is_binary(scalar.type) or pa.types.is_large_binary(scalar.type):
+            row[name] = np.frombuffer(scalar.as_buffer(), dtype=np.uint8).copy()
+        else:
+            row[name] = scalar.as_py()
+    return row
+
+
+# -- records ---------------------------------------------------------------------------------
+def _as_float32(a: Any) -> np.ndarray:
+    a = np.asarray(a)
+    return a.astype(np.float32) if a.dtype.kind == "f" and a.dtype != np.float32 else a
+
+
+def _as_int32(a: Any) -> np.ndarray:
+    a = np.asarray(a)
+    if a.dtype.kind in "iu" and a.dtype != np.int32 and a.size:
+        if a.min() >= np.iinfo(np.int32).min and a.max() <= np.iinfo(np.int32).max:
+            return a.astype(np.int32)
+    elif a.dtype.kind in "iu" and a.dtype != np.int32:
+        return a.astype(np.int32)
+    return a
+
+
+@dataclass(eq=False)
+class FaceRecord:
+    """One face: pixels with 3D points (cm), unit normals, observed linear RGB and visibility.
+
+    Arrays are coerced on construction where lossless-enough (float -> float32, int -> int32,
+    0/1 ints -> bool); :meth:`validate` then checks shapes, dtypes and values strictly.
+    """
+
+    face_id: str
+    source_path: str
+    face_index: int
+    image_height: int
+    image_width: int
+    pixel_rc: np.ndarray        # (N, 2) int32, row/col in px
+    points: np.ndarray          # (N, 3) float32, cm, world = camera frame
+    normals: np.ndarray         # (N, 3) float32, unit
+    observed_rgb: np.ndarray    # (N, 3) float32, linear RGB >= 0
+    mask: np.ndarray            # (N,) bool
+    grid_height: int
+    grid_width: int
+    visibility_bits: np.ndarray  # (N, ceil(L/8)) uint8, packbits(axis=1, bitorder='little')
+    visibility_method: str = "exact"
+    gt_probe_path: str | None = None
+    photo_path: str | None = None
+    meta: dict = field(default_factory=dict)
+    status: str = "ok"
+    message: str = ""
+
+    def __post_init__(self) -> None:
+        self.pixel_rc = _as_int32(self.pixel_rc)
+        self.points = _as_float32(self.points)
+        self.normals = _as_float32(self.normals)
+        self.observed_rgb = _as_float32(self.observed_rgb)
+        mask = np.asarray(self.mask)
+        if mask.dtype.kind in "iu" and mask.size and np.isin(mask, (0, 1)).all():
+            mask = mask.astype(bool)
+        elif mask.dtype.kind in "iu" and not mask.size:
+            mask = mask.astype(bool)
+        self.mask = mask
+        vis = np.asarray(self.visibility_bits)
+        if vis.dtype.kind in "iu" and vis.dtype != np.uint8 and (
+            not vis.size or (vis.min() >= 0 and vis.max() <= 255)
+        ):
+            vis = vis.astype(np.uint8)
+        self.visibility_bits = vis
+
+    def __repr__(self) -> str:
+        return (f"FaceRecord(face_id={self.face_id!r}, source_path={self.source_path!r}, "
+                f"face_index={self.face_index}, num_pixels={self.num_pixels}, "
+                f"grid={self.grid_height}x{self.grid_width}, status={self.status!r})")
+
+    # -- derived -------------------------------------------------------------------------
+    @property
+    def num_pixels(self) -> int:
+        """Number N of face pixels."""
+        return int(self.points.shape[0]) if self.points.ndim else 0
+
+    @property
+    def num_texels(self) -> int:
+        """L = grid_height * grid_width."""
+        return int(self.grid_height) * int(self.grid_width)
+
+    @property
+    def grid(self):
+        """The lighting grid as a :class:`f2l.lighting.grid.LatLongGrid`."""
+        from f2l.lighting.grid import LatLongGrid
+
+        return LatLongGrid(int(self.grid_height), int(self.grid_width))
+
+    def visibility(self) -> np.ndarray:
+        """Unpacked visibility, (N, L) bool, row-major texels."""
+        return unpack_visibility(self.visibility_bits, self.num_texels)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    # -- validation ----------------------------------------------------------------------
+    def check_arrays(self) -> None:
+        """Shapes, dtypes, finiteness, unit normals, observed >= 0, pixels inside the photo."""
+        errors: list[str] = []
+        n = self.num_pixels
+        nbytes = -(-self.num_texels // 8)
+        specs = (
+            ("pixel_rc", np.int32, (n, 2)),
+            ("points", np.float32, (n, 3)),
+            ("normals", np.float32, (n, 3)),
+            ("observed_rgb", np.float32, (n, 3)),
+            ("mask", np.bool_, (n,)),
+            ("visibility_bits", np.uint8, (n, nbytes)),
+        )
+        ok_arrays = set()
+        for name, dtype, shape in specs:
+            a = getattr(self, name)
+            if not isinstance(a, np.ndarray):
+                errors.append(f"{name} is {type(a).__name__}, expected numpy array")
+            elif a.dtype != dtype:
+                errors.append(f"{name} has dtype {a.dtype}, expected {np.dtype(dtype)}")
+            elif a.shape != shape:
+                errors.append(f"{name} has shape {a.shape}, expected {shape}")
+            else:
+                ok_arrays.add(name)
+        for name in ("points", "normals", "observed_rgb"):
+            if name in ok_arrays and not np.isfinite(getattr(self, name)).all():
+                errors.append(f"{name} has non-finite values (NaN/inf)")
+                ok_arrays.discard(name)
+        if "normals" in ok_arrays and n:
+            dev = np.abs(np.linalg.norm(self.normals.astype(np.float64), axis=1) - 1.0)
+            if dev.max() > _NORMAL_TOLERANCE:
+                errors.append(f"normals are not unit length (max |norm - 1| = {dev.max():.3g}, "
+                              f"tolerance {_NORMAL_TOLERANCE})")
+        if "observed_rgb" in ok_arrays and n and self.observed_rgb.min() < 0:
+            errors.append(f"observed_rgb has negative values (min {self.observed_rgb.min():.3g})")
+        if "pixel_rc" in ok_arrays and n:
+            rc = self.pixel_rc
+            if rc.min() < 0 or rc[:, 0].max() >= self.image_height or \
+                    rc[:, 1].max() >= self.image_width:
+                errors.append(f"pixel_rc outside the {self.image_height}x{self.image_width} photo")
+        if "visibility_bits" in ok_arrays and n and self.num_texels % 8:
+            pad_mask = np.uint8((0xFF << (self.num_texels % 8)) & 0xFF)
+            if (self.visibility_bits[:, -1] & pad_mask).any():
+                errors.append("visibility_bits has non-zero padding bits beyond L texels")
+        if not isinstance(self.meta, dict):
+            errors.append(f"meta is {type(self.meta).__name__}, expected dict")
+        if errors:
+            raise SchemaError(f"face {self.face_id!r}: " + "; ".join(errors), errors)
+
+    def validate(self) -> None:
+        """Check the record fully (arrays and schema); raise :class:`SchemaError` naming face_id."""
+        self.check_arrays()
+        validate_table(self.to_table(), _schema(FACE_SCHEMA_NAME), source=f"face {self.face_id!r}")
+
+    # -- conversion ----------------------------------------------------------------------
+    def to_row(self) -> dict[str, Any]:
+        """Row dict in the stored layout (flattened arrays, visibility bytes, meta_json)."""
+        try:
+            meta_json = json_dumps_strict(self.meta)
+        except (TypeError, ValueError) as exc:
+            raise SchemaError(f"face {self.face_id!r}: meta is not strict JSON: {exc}") from None
+        return {
+            "face_id": self.face_id,
+            "source_path": str(self.source_path),
+            "face_index": int(self.face_index),
+            "image_height": int(self.image_height),
+            "image_width": int(self.image_width),
+            "num_pixels": self.num_pixels,
+            "pixel_rc": np.ascontiguousarray(self.pixel_rc).reshape(-1),
+            "points": np.ascontiguousarray(self.points).reshape(-1),
+            "normals": np.ascontiguousarray(self.normals).reshape(-1),
+            "observed_rgb": np.ascontiguousarray(self.observed_rgb).reshape(-1),
+            "mask": np.ascontiguousarray(self.mask).reshape(-1),
+            "grid_height": int(self.grid_height),
+            "grid_width": int(self.grid_width),
+            "visibility_bits": np.ascontiguousarray(self.visibility_bits).tobytes(),
+            "visibility_method": self.visibility_method,
+            "gt_probe_path": self.gt_probe_path,
+            "photo_path": self.photo_path,
+            "meta_json": meta_json,
+            "status": self.status,
+            "message": self.message,
+        }
+
+    def to_table(self) -> pa.Table:
+        """One-row Arrow table of this record."""
+        return rows_to_table([self.to_row()], _schema(FACE_SCHEMA_NAME))
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> FaceRecord:
+        """Inverse of :meth:`to_row` (accepts lists, numpy arrays or bytes for the arrays)."""
+        n = int(row["num_pixels"])
+        num_texels = int(row["grid_height"]) * int(row["grid_width"])
+        vis = row["visibility_bits"]
+        vis = np.frombuffer(vis, dtype=np.uint8).copy() if isinstance(vis, (bytes, bytearray)) \
+            else np.asarray(vis, dtype=np.uint8)
+
+        def arr(name: str, dtype, shape):
+            return np.asarray(row[name], dtype=dtype).reshape(shape)
+
+        return cls(
+            face_id=row["face_id"],
+            source_path=row["source_path"],
+            face_index=int(row["face_index"]),
+            image_height=int(row["image_height"]),
+            image_width=int(row["image_width"]),
+            pixel_rc=arr("pixel_rc", np.int32, (n, 2)),
+            points=arr("points", np.float32, (n, 3)),
+            normals=arr("normals", np.float32, (n, 3)),
+            observed_rgb=arr("observed_rgb", np.float32, (n, 3)),
+            mask=arr("mask", bool, (n,)),
+            grid_height=int(row["grid_height"]),
+            grid_width=int(row["grid_width"]),
+            visibility_bits=vis.reshape(n, -(-num_texels // 8)),
+            visibility_method=row["visibility_method"],
+            gt_probe_path=row["gt_probe_path"],
+            photo_path=row["photo_path"],
+            meta=json.loads(row["meta_json"]),
+            status=row["status"],
+            message=row["message"],
+        )
+
+
+@dataclass(frozen=True)
+class BadRecord:
+    """A file or row that could not be read or failed validation (``face_id`` None if unknown)."""
+
+    source: str
+    face_id: str | None
+    reason: str
+
+    ok = False
+
+    def __str__(self) -> str:
+        who = f" (face {self.face_id!r})" if self.face_id is not None else ""
+        return f"{self.source}{who}: {self.reason}"
+
+
+# -- atomic Parquet writing ------------------------------------------------------------------
+def _tmp_path(path: Path) -> Path:
+    return path.with_name(f"{path.name}.{os.getpid()}.tmp")
+
+
+def _write_options(schema: dict, compression: str) -> dict:
+    props = schema["properties"]
+    scalar = [n for n, p in props.items()
+              if not (p["x-arrow-type"].startswith("list<") or "binary" in p["x-arrow-type"])]
+    return {"compression": compression, "use_dictionary": False, "write_statistics": scalar}
+
+
+class _AtomicParquet:
+    """A ParquetWriter on ``<path>.<pid>.tmp`` that is fsynced and renamed on commit."""
+
+    def __init__(self, path: Path, aschema: pa.Schema, options: dict):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = _tmp_path(self.path)
+        self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in commit/abort
+        try:
+            self._writer = pq.ParquetWriter(self._file, aschema, **options)
+        except BaseException:
+            self._file.close()
+            self.tmp.unlink(missing_ok=True)
+            raise
+
+    def write(self, table: pa.Table) -> None:
+        self._writer.write_table(table, row_group_size=max(table.num_rows, 1))
+
+    def commit(self) -> Path:
+        self._writer.close()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        try:
+            self._writer.close()
+        except Exception:  # noqa: BLE001 - best effort on an already failing path
+            pass
+        self._file.close()
+        self.tmp.unlink(missing_ok=True)
+
+
+def write_table_atomic(table: pa.Table, path: str | os.PathLike, schema: dict | str | None = None,
+                       *, row_group_size: int | None = None, compression: str = "zstd") -> Path:
+    """Write ``table`` to ``path`` atomically; validate against ``schema`` (name or dict) first."""
+    path = Path(path)
+    if schema is not None:
+        schema = _schema_of(schema)
+        validate_table(table, schema, source=str(path))
+        aschema = arrow_schema(schema)
+        table = table.select(aschema.names).replace_schema_metadata(aschema.metadata)
+        options = _write_options(schema, compression)
+    else:
+        options = {"compression": compression}
+    writer = _AtomicParquet(path, table.schema, options)
+    try:
+        writer._writer.write_table(table, row_group_size=row_group_size)
+    except BaseException:
+        writer.abort()
+        raise
+    return writer.commit()
+
+
+class ParquetAppender:
+    """Append validated rows to a results table in row groups; atomic on :meth:`close`.
+
+    Use as a context manager: on an exception the temporary file is removed and ``path`` is
+    left as it was. Rows are validated when appended, so a bad row raises at its source.
+    """
+
+    def __init__(self, path: str | os.PathLike, schema: dict | str, *,
+                 rows_per_group: int = 1024, compression: str = "zstd"):
+        self.path = Path(path)
+        self.schema = _schema_of(schema)
+        self.rows_per_group = int(rows_per_group)
+        self._aschema = arrow_schema(self.schema)
+        self._writer = _AtomicParquet(self.path, self._aschema,
+                                      _write_options(self.schema, compression))
+        self._pending: list[pa.Table] = []
+        self._pending_rows = 0
+        self.num_rows = 0
+        self._closed = False
+
+    def append(self, row: Mapping[str, Any] | Sequence[Mapping[str, Any]]) -> None:
+        """Validate one row dict (or a list of them) and buffer it."""
+        rows = [row] if isinstance(row, Mapping) else list(row)
+        self.append_table(rows_to_table(rows, self.schema))
+
+    def extend(self, rows: Iterable[Mapping[str, Any]]) -> None:
+        for row in rows:
+            self.append(row)
+
+    def append_table(self, table: pa.Table) -> None:
+        """Validate a table of rows and buffer it."""
+        if self._closed:
+            raise RuntimeError(f"{self.path}: appender is closed")
+        validate_table(table, self.schema, source=f"{self.path} (rows from {self.num_rows})")
+        table = table.select(self._aschema.names).replace_schema_metadata(self._aschema.metadata)
+        self._pending.append(table)
+        self._pending_rows += table.num_rows
+        self.num_rows += table.num_rows
+        if self._pending_rows >= self.rows_per_group:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        table = pa.concat_tables(self._pending).combine_chunks()
+        self._pending, self._pending_rows = [], 0
+        for start in range(0, table.num_rows, self.rows_per_group):
+            self._writer.write(table.slice(start, self.rows_per_group))
+
+    def close(self) -> Path:
+        """Flush and atomically publish ``path`` (an empty table if nothing was appended)."""
+        if self._closed:
+            return self.path
+        self._flush()
+        self._closed = True
+        return self._writer.commit()
+
+    def abort(self) -> None:
+        """Discard everything appended; ``path`` is untouched."""
+        if not self._closed:
+            self._closed = True
+            self._writer.abort()
+
+    def __enter__(self) -> ParquetAppender:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# -- shard writer ----------------------------------------------------------------------------
+_PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
+
+
+class ShardWriter:
+    """Write validated :class:`FaceRecord` s to ``out_dir/part-00000.parquet``, ... atomically.
+
+    Each record is one row group; a shard is published (renamed from its ``.tmp``) when it holds
+    ``records_per_shard`` records or on close. On an exception inside ``with``, the unfinished
+    shard is discarded and finished shards are kept. Existing ``part-*.parquet`` files raise
+    ``FileExistsError`` unless ``overwrite=True`` (then stale parts are removed on close).
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, records_per_shard: int = 64, *,
+                 compression: str = "zstd", overwrite: bool = False):
+        if records_per_shard < 1:
+            raise ValueError(f"records_per_shard must be >= 1, got {records_per_shard}")
+        self.out_dir = Path(out_dir)
+        self.records_per_shard = int(records_per_shard)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        existing = [p for p in self.out_dir.iterdir() if _PART_RE.match(p.name)]
+        if existing and not overwrite:
+            raise FileExistsError(f"{self.out_dir} already holds {len(existing)} shard file(s); "
+                                  f"pass overwrite=True or use an empty directory")
+        self._stale = set(existing)
+        self._schema = _schema(FACE_SCHEMA_NAME)
+        self._aschema = arrow_schema(self._schema)
+        self._options = _write_options(self._schema, compression)
+        self._current: _AtomicParquet | None = None
+        self._in_current = 0
+        self._seen: set[str] = set()
+        self.paths: list[Path] = []
+        self.num_records = 0
+        self._closed = False
+
+    def write(self, record: FaceRecord) -> None:
+        """Validate ``record`` (raises :class:`SchemaError`) and append it to the current shard."""
+        if self._closed:
+            raise RuntimeError(f"{self.out_dir}: shard writer is closed")
+        record.check_arrays()
+        table = record.to_table()
+        validate_table(table, self._schema, source=f"face {record.face_id!r}")
+        if record.face_id in self._seen:
+            raise SchemaError(f"face {record.face_id!r}: duplicate face_id in {self.out_dir}")
+        if self._current is None:
+            path = self.out_dir / f"part-{len(self.paths):05d}.parquet"
+            self._current = _AtomicParquet(path, self._aschema, self._options)
+        self._current.write(table)
+        self._seen.add(record.face_id)
+        self._in_current += 1
+        self.num_records += 1
+        if self._in_current >= self.records_per_shard:
+            self._publish()
+
+    def _publish(self) -> None:
+        if self._current is not None:
+            path = self._current.commit()
+            self.paths.append(path)
+            self._stale.discard(path)
+            self._current, self._in_current = None, 0
+
+    def close(self) -> list[Path]:
+        """Publish the last shard; returns the shard paths written."""
+        if not self._closed:
+            self._publish()
+            self._closed = True
+            for stale in sorted(self._stale):
+                stale.unlink(missing_ok=True)
+        return list(self.paths)
+
+    def abort(self) -> None:
+        """Discard the unfinished shard (finished shards stay)."""
+        if self._current is not None:
+            self._current.abort()
+            self._current, self._in_current = None, 0
+        self._closed = True
+
+    def __enter__(self) -> ShardWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# -- reading ---------------------------------------------------------------------------------
+def shard_files(shards: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
+    """Parquet files of a shard directory (``*.parquet``, sorted), a file, or a list of either.
+
+    A list keeps its order; each directory in it expands to its sorted files.
+    """
+    if isinstance(shards, (str, os.PathLike)):
+        p = Path(shards)
+        if p.is_dir():
+            return sorted(q for q in p.glob("*.parquet") if not q.name.startswith("."))
+        return [p]
+    return [f for s in shards for f in shard_files(s)]
+
+
+def _row_face_id(table: pa.Table, index: int) -> str | None:
+    if "face_id" not in table.column_names:
+        return None
+    try:
+        value = table.column("face_id")[index].as_py()
+    except Exception:  # noqa: BLE001
+        return None
+    return value if isinstance(value, str) else None
+
+
+def iter_records(shards: str | os.PathLike | Iterable[str | os.PathLike],
+                 validate: bool = True) -> Iterator[FaceRecord | BadRecord]:
+    """Stream records one row group at a time, files in sorted order.
+
+    An unreadable file, an unreadable row group, or a row failing validation yields a
+    :class:`BadRecord` and reading continues with the next row group or file.
+    """
+    schema = _schema(FACE_SCHEMA_NAME)
+    for path in shard_files(shards):
+        source = str(path)
+        try:
+            pf = pq.ParquetFile(path)
+        except Exception as exc:  # noqa: BLE001 - any unreadable file becomes a BadRecord
+            yield BadRecord(source, None, f"unreadable Parquet file: {type(exc).__name__}: {exc}")
+            continue
+        with pf:
+            for rg in range(pf.num_row_groups):
+                try:
+                    table = pf.read_row_group(rg)
+                except Exception as exc:  # noqa: BLE001
+                    yield BadRecord(source, None, f"row group {rg} unreadable: "
+                                                  f"{type(exc).__name__}: {exc}")
+                    continue
+                for i in range(table.num_rows):
+                    one = table.slice(i, 1) if table.num_rows > 1 else table
+                    yield _record_from_table(one, source, f"row group {rg} row {i}", schema,
+                                             validate)
+
+
+def _record_from_table(table: pa.Table, source: str, where: str, schema: dict,
+                       validate: bool) -> FaceRecord | BadRecord:
+    face_id = _row_face_id(table, 0)
+    if validate:
+        errors = table_errors(table, schema, source=where)
+        if errors:
+            return BadRecord(source, face_id, "; ".join(errors[:10])
+                             + (f"; ... and {len(errors) - 10} more" if len(errors) > 10 else ""))
+    try:
+        record = FaceRecord.from_row(table_row(table, 0))
+        if validate:
+            record.check_arrays()
+    except SchemaError as exc:
+        return BadRecord(source, face_id, f"{where}: {exc}")
+    except Exception as exc:  # noqa: BLE001 - malformed rows read without validation
+        return BadRecord(source, face_id, f"{where}: cannot decode record: "
+                                          f"{type(exc).__name__}: {exc}")
+    return record
+
+
+def count_records(shards: str | os.PathLike | Iterable[str | os.PathLike]) -> int:
+    """Number of rows in the readable shard files (from Parquet footers only)."""
+    total = 0
+    for path in shard_files(shards):
+        try:
+            total += pq.ParquetFile(path).metadata.num_rows
+        except Exception:  # noqa: BLE001 - unreadable files are counted by iter_records as bad
+            continue
+    return total
+
+
+# -- side files ------------------------------------------------------------------------------
+def _check_face_id(face_id: str) -> None:
+    if not isinstance(face_id, str) or not _face_id_pattern().match(face_id):
+        raise SchemaError(f"face id {face_id!r} is not file-name safe "
+                          f"(pattern {_face_id_pattern().pattern})")
+
+
+def _atomic_side_write(out_dir: Path, rel: str, write) -> str:
+    final = Path(out_dir) / rel
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.with_name(f".{final.stem}.{os.getpid()}.tmp{final.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, final)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return rel
+
+
+def write_side_probe(out_dir: str | os.PathLike, face_id: str, probe: np.ndarray) -> str:
+    """Write a float32 (H, W, 3) probe to ``out_dir/probes/<face_id>.exr``; returns the relative path."""
+    from f2l.io.exr import write_exr
+
+    _check_face_id(face_id)
+    probe = np.asarray(probe, dtype=np.float32)
+    if probe.ndim != 3 or probe.shape[2] != 3:
+        raise ValueError(f"face {face_id!r}: probe must be (H, W, 3), got {probe.shape}")
+    if not np.isfinite(probe).all():
+        raise ValueError(f"face {face_id!r}: probe has non-finite values")
+    return _atomic_side_write(Path(out_dir), f"probes/{face_id}.exr",
+                              lambda p: write_exr(p, probe))
+
+
+def write_side_photo(out_dir: str | os.PathLike, face_id: str, image: np.ndarray,
+                     fmt: str = "png") -> str:
+    """Write a uint8 (H, W, 3) display image to ``out_dir/photos/<face_id>.<fmt>``; relative path."""
+    from PIL import Image
+
+    _check_face_id(face_id)
+    fmt = fmt.lower()
+    if fmt not in ("png", "jpg", "jpeg"):
+        raise ValueError(f"photo format must be png or jpg, got {fmt!r}")
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"face {face_id!r}: photo must be uint8 (H, W, 3), got "
+                         f"{image.dtype} {image.shape}")
+    pil_fmt = "PNG" if fmt == "png" else "JPEG"
+    return _atomic_side_write(Path(out_dir), f"photos/{face_id}.{fmt}",
+                              lambda p: Image.fromarray(image).save(p, format=pil_fmt))
+
+
+def load_gt_probe(shard_dir: str | os.PathLike, record: FaceRecord) -> np.ndarray | None:
+    """The ground-truth probe (H, W, 3) float32 of ``record``, or None when it has none."""
+    if record.gt_probe_path is None:
+        return None
+    from f2l.io.exr import read_exr
+
+    path = Path(shard_dir) / record.gt_probe_path
+    if not path.is_file():
+        raise FileNotFoundError(f"face {record.face_id!r}: ground-truth probe {path} not found")
+    return np.asarray(read_exr(path), dtype=np.float32)
+

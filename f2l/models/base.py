@@ -1,0 +1,79 @@
+"""The lighting-model plugin interface (entry-point group ``f2l.lighting_models``).
+
+A model turns a parameter vector into radiance on a lat-long grid, differentiably (torch).
+Everything else — transport, loss, albedo, ground bounce, multi-start, optimisation — lives in
+``f2l.estimate``, so a plugin is small. See ``plugins/example_directional`` for a template.
+
+Contract
+--------
+- ``name``, ``version``, ``description``: identification (shown by ``f2l models``).
+- ``domain``: ``"sky"`` — the model describes the upper hemisphere only and the estimator adds the
+  Lambertian ground bounce below the horizon (l_gnd = rho_gnd / pi * E_horizontal(sky));
+  ``"sphere"`` — the model describes the whole sphere itself (e.g. spherical harmonics).
+- ``param_names`` and ``bounds()``: the parameter vector layout and box bounds (``±inf`` allowed).
+- ``initial_points()``: starting points (S, P) for the multi-start optimiser (e.g. GMM centroids).
+- ``radiance(params)``: torch (B, P) -> (B, L, 3) radiance on the flattened grid (row-major texels),
+  non-negative for sky models. For ``domain == "sky"`` only the upper rows are used.
+- optional ``linear_basis()``: an (L, K) array B when radiance(params) == B @ params.reshape(K, 3);
+  the estimator then precomputes T @ B once, which makes each evaluation O(N K).
+- optional ``prior_nll(params)``: (B,) negative log-likelihood of the parameters (the psi_l term).
+- optional ``sun_direction(params)``: (3,) unit direction of the sun, when the model has one.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from f2l.lighting.grid import LatLongGrid
+
+
+class LightingModel:
+    """Base class for lighting models; subclass and register under ``f2l.lighting_models``."""
+
+    name: ClassVar[str] = ""
+    version: ClassVar[str] = "1"
+    description: ClassVar[str] = ""
+    domain: ClassVar[str] = "sky"
+
+    def __init__(self, grid: LatLongGrid) -> None:
+        self.grid = grid
+
+    # -- layout ------------------------------------------------------------------------------
+    @property
+    def param_names(self) -> list[str]:
+        raise NotImplementedError
+
+    @property
+    def num_params(self) -> int:
+        return len(self.param_names)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) bounds, each (P,) float64; default unbounded."""
+        p = self.num_params
+        return np.full(p, -np.inf), np.full(p, np.inf)
+
+    def initial_points(self) -> np.ndarray:
+        raise NotImplementedError
+
+    # -- evaluation ------------------------------------------------------------------------------
+    def radiance(self, params: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def linear_basis(self) -> np.ndarray | None:
+        return None
+
+    def prior_nll(self, params: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(params.shape[0], dtype=params.dtype, device=params.device)
+
+    def sun_direction(self, params: np.ndarray) -> np.ndarray | None:
+        return None
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def probe(self, params: np.ndarray) -> np.ndarray:
+        """Radiance (H, W, 3) float32 for one parameter vector (no ground bounce)."""
+        with torch.no_grad():
+            rad = self.radiance(torch.as_tensor(np.asarray(params, dtype=np.float64))[None])[0]
+        return rad.reshape(self.grid.height, self.grid.width, 3).cpu().numpy().astype(np.float32)

@@ -1,0 +1,63 @@
+"""Discovery of lighting models through the ``f2l.lighting_models`` entry-point group.
+
+Built-in models (``plugins/f2l_builtin_models``) register through the same group as third-party
+packages, so there is exactly one path. A plugin that fails to import is reported with its name
+and the error; the other models keep working.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+
+from f2l.lighting.grid import LatLongGrid
+from f2l.models.base import LightingModel
+
+GROUP = "f2l.lighting_models"
+
+
+class ModelNotFoundError(KeyError):
+    pass
+
+
+@dataclass
+class ModelInfo:
+    name: str
+    target: str  # "module:attr"
+    package: str  # distribution providing it
+    cls: type | None = None
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.cls is not None
+
+
+def discover() -> dict[str, ModelInfo]:
+    """Load every entry point of the group; failures are kept as ModelInfo.error."""
+    found: dict[str, ModelInfo] = {}
+    for ep in entry_points(group=GROUP):
+        if ep.name in found:  # the same distribution seen twice on sys.path (e.g. editable + build)
+            continue
+        package = ep.dist.name if ep.dist is not None else "?"
+        info = ModelInfo(name=ep.name, target=ep.value, package=package)
+        try:
+            obj = ep.load()
+            if not (isinstance(obj, type) and issubclass(obj, LightingModel)):
+                raise TypeError(f"{ep.value} is not a subclass of f2l.models.base.LightingModel")
+            info.cls = obj
+        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the others
+            info.error = f"{type(exc).__name__}: {exc}"
+        found[ep.name] = info
+    return dict(sorted(found.items()))
+
+
+def load_model(name: str, grid: LatLongGrid) -> LightingModel:
+    """Instantiate the model registered as ``name`` on ``grid``."""
+    models = discover()
+    if name not in models:
+        raise ModelNotFoundError(f"unknown lighting model {name!r}; installed: {', '.join(models) or 'none'}")
+    info = models[name]
+    if not info.ok:
+        raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to load: {info.error}")
+    return info.cls(grid)

@@ -1,0 +1,393 @@
+"""Synthetic face photos rendered under known light probes (the project's test/demo data).
+
+Geometry: MediaPipe's canonical face mesh (cm), Loop-subdivided twice (~7k vertices), rotated
+about its bounding-box centre by the head pose R = R_y(yaw) R_x(pitch) R_z(roll) (degrees,
+right-handed about the world axes, +Y up, +Z toward the camera) and placed with that centre at
+(0, 0, -FACE_DISTANCE_CM). Camera: a pinhole at the origin looking along -Z with a vertical
+field of view of FOV_DEG, square images; pixel (row, col) has the ray
+
+    d ~ ((2 (col + 0.5) / S - 1) tan(fov/2), -(2 (row + 0.5) / S - 1) tan(fov/2), -1),
+
+so the world frame is the camera frame and probes need no rotation.
+
+Shading (paper §3): s = albedo ⊙ (T l), T[p, w] = (1/pi) V(p, w) max(0, <n_p, w>) dw, with V the
+binary mesh visibility of :func:`f2l.transport.visibility.compute_visibility` and l the probe
+flattened row-major (L, 3). Optional specular: normalised Blinn-Phong toward the sun,
+k_s (m + 8) / (8 pi) <n, h>^m <n, w_sun> E_sun V_sun (one shadow ray), added untinted.
+
+Photo: linear image × exposure_scale (the 98th percentile of the face's linear values maps to
+0.85) + Gaussian noise, sRGB-encoded, clipped and rounded to 8 bits. Background pixels show a
+blurred probe along their ray. The record's observed linear RGB is the inverse sRGB of the 8-bit
+values (quantised and clipped like a real photo); gt_probe = probe × exposure_scale is in the same
+units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from f2l.lighting.grid import LatLongGrid
+from f2l.synth.facemesh import face_mesh
+
+FOV_DEG = 19.0  # face (~16 x 18 cm at 60 cm) fills ~half the frame: N ~ 8-9k px at 128^2
+FACE_DISTANCE_CM = 60.0
+POSE_RANGE_DEG = 20.0
+EXPOSURE_PERCENTILE = 98.0
+EXPOSURE_TARGET = 0.85
+MIN_FACING = 0.1  # keep pixels with <n, -d> > MIN_FACING
+SPECULAR_SHININESS = 40.0
+BACKGROUND_BLUR_TEXELS = 1.5
+
+
+@dataclass
+class SyntheticFace:
+    """One synthetic face photo and its ground truth.
+
+    photo_srgb (S, S, 3) uint8; pixel_rc (N, 2) int32 (row, col) of the face pixels; points
+    (N, 3) float32 cm and normals (N, 3) float32 unit, world = camera frame; observed_rgb (N, 3)
+    float32 linear (inverse sRGB of the 8-bit photo); mask (N,) bool (not clipped, not
+    near-black); visibility_bits (N, ceil(L/8)) uint8 packed little-endian over row-major texels;
+    gt_probe (H, W, 3) float32 in the units of observed_rgb; albedo (3,) linear; clean_rgb (N, 3)
+    float32 the exposure-scaled noise-free linear shading before quantisation; vertices (V, 3)
+    float64 cm and faces (F, 3) int64 of the posed mesh used for rasterisation and visibility.
+    """
+
+    photo_srgb: np.ndarray
+    pixel_rc: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    observed_rgb: np.ndarray
+    mask: np.ndarray
+    visibility_bits: np.ndarray
+    visibility_method: str
+    gt_probe: np.ndarray
+    albedo: np.ndarray
+    meta: dict
+    vertices: np.ndarray
+    faces: np.ndarray
+    clean_rgb: np.ndarray
+    grid: LatLongGrid = field(default_factory=LatLongGrid)
+
+    @property
+    def num_pixels(self) -> int:
+        return int(len(self.pixel_rc))
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometry helpers
+# ---------------------------------------------------------------------------------------------
+def pose_matrix(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """R = R_y(yaw) R_x(pitch) R_z(roll), right-handed rotations about the world axes."""
+    y, p, r = (math.radians(float(a)) for a in (yaw_deg, pitch_deg, roll_deg))
+    cy, sy, cp, sp, cr, sr = math.cos(y), math.sin(y), math.cos(p), math.sin(p), math.cos(r), math.sin(r)
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    rz = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    return ry @ rx @ rz
+
+
+def camera_rays(image_size: int, fov_deg: float = FOV_DEG) -> np.ndarray:
+    """Unit ray directions (S, S, 3) of a pinhole at the origin looking along -Z."""
+    s = int(image_size)
+    t = math.tan(math.radians(fov_deg) / 2.0)
+    c = (np.arange(s) + 0.5) / s * 2.0 - 1.0
+    x = np.broadcast_to(c[None, :] * t, (s, s))
+    y = np.broadcast_to(-c[:, None] * t, (s, s))
+    d = np.stack([x, y, -np.ones((s, s))], axis=-1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def posed_face_mesh(head_pose_deg, subdivisions: int = 2):
+    """(vertices (V, 3) float64 cm, faces (F, 3) int64, vertex normals (V, 3)) in the camera frame."""
+    mesh = face_mesh(subdivisions)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    n = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    centre = 0.5 * (v.min(0) + v.max(0))
+    R = pose_matrix(*head_pose_deg)
+    v = (v - centre) @ R.T + np.array([0.0, 0.0, -FACE_DISTANCE_CM])
+    n = n @ R.T
+    return v, np.asarray(mesh.faces, dtype=np.int64), n
+
+
+def _rasterise(vertices, faces, vnormals, rays):
+    """Primary rays from the origin (embreex INTERSECT). Returns (hit mask (S,S), primID,
+    barycentric (u, v) per pixel) with P = (1-u-v) v0 + u v1 + v v2."""
+    from embreex.mesh_construction import TriangleMesh
+    from embreex.rtcore_scene import EmbreeScene
+
+    scene = EmbreeScene()
+    _mesh = TriangleMesh(  # noqa: F841  (keep the geometry alive while the scene is used)
+        scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32)
+    )
+    d = np.ascontiguousarray(rays.reshape(-1, 3), dtype=np.float32)
+    o = np.zeros_like(d)
+    res = scene.run(o, d, output=1)
+    return res["primID"].astype(np.int64), res["u"].astype(np.float64), res["v"].astype(np.float64)
+
+
+def _shadow_rays(vertices, faces, origins, direction) -> np.ndarray:
+    """Boolean (n,): True where origins + t direction (t > 0) hits the mesh."""
+    from embreex.mesh_construction import TriangleMesh
+    from embreex.rtcore_scene import EmbreeScene
+
+    scene = EmbreeScene()
+    _mesh = TriangleMesh(  # noqa: F841
+        scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32)
+    )
+    o = np.ascontiguousarray(origins, np.float32)
+    d = np.ascontiguousarray(np.broadcast_to(direction, o.shape), np.float32)
+    return scene.run(o, d, query="OCCLUDED") != -1
+
+
+def _transport_matmul(vis_bits, normals, grid: LatLongGrid, l_flat: np.ndarray) -> np.ndarray:
+    """T @ l (N, 3) with T[p, w] = (1/pi) V max(0, <n, w>) dw; via f2l.transport.Transport."""
+    try:
+        from f2l.transport import Transport  # type: ignore[attr-defined]
+    except ImportError:
+        Transport = None
+    if Transport is not None:
+        T = Transport(vis_bits, normals, grid)
+        return np.asarray(T.matmul(np.asarray(l_flat, dtype=np.float32)), dtype=np.float64)
+    # Fallback with the same definition (chunked dense product).
+    from f2l.transport.visibility import unpack_bits
+
+    dirs = grid.directions_flat
+    sa = grid.solid_angles_flat
+    out = np.zeros((len(normals), l_flat.shape[1]), dtype=np.float64)
+    for s in range(0, len(normals), 1024):
+        e = min(len(normals), s + 1024)
+        V = unpack_bits(vis_bits[s:e], grid.size).astype(np.float64)
+        cos = np.maximum(np.asarray(normals[s:e], np.float64) @ dirs.T, 0.0)
+        out[s:e] = ((V * cos * sa[None, :]) / math.pi) @ l_flat
+    return out
+
+
+def _blurred_probe_lookup(grid: LatLongGrid, probe: np.ndarray, directions: np.ndarray):
+    """Probe blurred by a Gaussian (BACKGROUND_BLUR_TEXELS, wrapping in azimuth), sampled
+    bilinearly along ``directions`` (..., 3)."""
+    from scipy.ndimage import gaussian_filter, map_coordinates
+
+    blurred = np.stack(
+        [
+            gaussian_filter(probe[..., c].astype(np.float64), BACKGROUND_BLUR_TEXELS, mode=("nearest", "wrap"))
+            for c in range(probe.shape[-1])
+        ],
+        axis=-1,
+    )
+    uv = grid.direction_to_uv(directions.reshape(-1, 3))
+    col = uv[:, 0] * grid.width - 0.5
+    row = uv[:, 1] * grid.height - 0.5
+    # pad one column on each side for periodic interpolation
+    padded = np.concatenate([blurred[:, -1:], blurred, blurred[:, :1]], axis=1)
+    out = np.stack(
+        [map_coordinates(padded[..., c], [row, col + 1.0], order=1, mode="nearest") for c in range(3)],
+        axis=-1,
+    )
+    return out.reshape(directions.shape[:-1] + (3,))
+
+
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.cctf_encoding(np.clip(x, 0.0, 1.0), function="sRGB"))
+
+
+def _srgb_decode(x: np.ndarray) -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.cctf_decoding(x, function="sRGB"))
+
+
+def _sun_from_probe(grid: LatLongGrid, probe: np.ndarray, cap_deg: float = 5.0):
+    """(direction of the brightest texel, RGB irradiance of the cap of ``cap_deg`` around it)."""
+    lum = probe[: grid.sky_rows] @ np.array([0.2126, 0.7152, 0.0722])
+    r, c = np.unravel_index(np.argmax(lum), lum.shape)
+    d = grid.directions[r, c]
+    cap = (grid.directions @ d) > math.cos(math.radians(cap_deg))
+    e = np.einsum("hwc,hw->c", probe.astype(np.float64), cap * grid.solid_angles)
+    return d, e
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+# ---------------------------------------------------------------------------------------------
+def render_face(
+    grid: LatLongGrid,
+    probe: np.ndarray,
+    rng: np.random.Generator,
+    image_size: int = 128,
+    albedo=None,
+    head_pose_deg=None,
+    specular: float = 0.0,
+    noise_sigma: float = 0.0,
+    visibility_method: str = "adaptive",
+    sun_direction=None,
+    threads: int = 2,
+    sky_info: dict | None = None,
+) -> SyntheticFace:
+    """Render the canonical face under ``probe`` (H, W, 3 linear radiance on ``grid``).
+
+    Random draws from ``rng``, in order: pose (yaw, pitch, roll ~ U[-20, 20] deg) unless
+    ``head_pose_deg`` is given, albedo (``f2l.estimate.skin.sample_skin_albedo``) unless given,
+    then the noise. ``specular`` = k_s of the Blinn-Phong sun highlight (0 = Lambertian only);
+    its sun is ``sun_direction`` or the probe's brightest sky texel. ``sky_info`` is copied into
+    ``meta['sky']``.
+    """
+    probe = np.asarray(probe, dtype=np.float32)
+    if probe.shape != (grid.height, grid.width, 3):
+        raise ValueError(f"probe shape {probe.shape} does not match grid {grid.shape}")
+    if head_pose_deg is None:
+        head_pose_deg = rng.uniform(-POSE_RANGE_DEG, POSE_RANGE_DEG, size=3)
+    head_pose_deg = [float(a) for a in head_pose_deg]
+    if albedo is None:
+        from f2l.estimate.skin import sample_skin_albedo
+
+        albedo = sample_skin_albedo(rng, 1)[0]
+    albedo = np.asarray(albedo, dtype=np.float64).reshape(3)
+
+    vertices, faces, vnormals = posed_face_mesh(head_pose_deg)
+    rays = camera_rays(image_size)
+    prim, bu, bv = _rasterise(vertices, faces, vnormals, rays)
+    d_flat = rays.reshape(-1, 3)
+    hit = prim >= 0
+    idx = np.nonzero(hit)[0]
+    tri = faces[prim[idx]]
+    w = np.stack([1.0 - bu[idx] - bv[idx], bu[idx], bv[idx]], axis=1)
+    points = np.einsum("nk,nkc->nc", w, vertices[tri])
+    normals = np.einsum("nk,nkc->nc", w, vnormals[tri])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    facing = np.einsum("nc,nc->n", normals, -d_flat[idx]) > MIN_FACING
+    idx, points, normals = idx[facing], points[facing], normals[facing]
+    pixel_rc = np.stack(np.divmod(idx, image_size), axis=1).astype(np.int32)
+
+    from f2l.transport.visibility import compute_visibility
+
+    vis_bits = compute_visibility(
+        vertices, faces, points, normals, grid, method=visibility_method, threads=threads
+    )
+    l_flat = probe.reshape(-1, 3).astype(np.float64)
+    shading = albedo[None, :] * _transport_matmul(vis_bits, normals, grid, l_flat)
+
+    if specular > 0.0:
+        if sun_direction is None:
+            sun_dir, e_sun = _sun_from_probe(grid, probe)
+        else:
+            sun_dir = np.asarray(sun_direction, dtype=np.float64)
+            sun_dir = sun_dir / np.linalg.norm(sun_dir)
+            _, e_sun = _sun_from_probe(grid, probe)
+        n_dot_l = normals @ sun_dir
+        h = sun_dir[None, :] - d_flat[idx]
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        n_dot_h = np.maximum(np.einsum("nc,nc->n", normals, h), 0.0)
+        offset = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        lit = (n_dot_l > 0) & ~_shadow_rays(vertices, faces, points + offset * normals, sun_dir)
+        m = SPECULAR_SHININESS
+        spec = specular * (m + 8.0) / (8.0 * math.pi) * n_dot_h**m * np.maximum(n_dot_l, 0.0) * lit
+        shading = shading + spec[:, None] * e_sun[None, :]
+
+    # exposure
+    p98 = float(np.percentile(shading, EXPOSURE_PERCENTILE)) if len(shading) else 0.0
+    exposure_scale = EXPOSURE_TARGET / p98 if p98 > 0 else 1.0
+
+    image = _blurred_probe_lookup(grid, probe, rays).reshape(-1, 3)
+    image[idx] = shading
+    image *= exposure_scale
+    if noise_sigma > 0:
+        image = image + rng.normal(0.0, float(noise_sigma), size=image.shape)
+    photo = np.round(_srgb_encode(image) * 255.0).astype(np.uint8).reshape(image_size, image_size, 3)
+
+    face_codes = photo.reshape(-1, 3)[idx]
+    observed = _srgb_decode(face_codes.astype(np.float64) / 255.0)
+    mask = ~(face_codes == 255).any(axis=1) & ~(face_codes <= 2).all(axis=1)
+
+    sky = dict(sky_info) if sky_info is not None else {}
+    focal_px = (image_size / 2.0) / math.tan(math.radians(FOV_DEG) / 2.0)
+    meta = dict(
+        pose_deg=dict(yaw=head_pose_deg[0], pitch=head_pose_deg[1], roll=head_pose_deg[2]),
+        albedo=[float(a) for a in albedo],
+        exposure_scale=float(exposure_scale),
+        sky=sky,
+        image_size=int(image_size),
+        fov_deg=FOV_DEG,
+        focal_px=float(focal_px),
+        face_distance_cm=FACE_DISTANCE_CM,
+        specular=float(specular),
+        noise_sigma=float(noise_sigma),
+        num_pixels=int(len(idx)),
+        num_masked=int(mask.sum()),
+        grid=[grid.height, grid.width],
+    )
+    return SyntheticFace(
+        photo_srgb=photo,
+        pixel_rc=pixel_rc,
+        points=points.astype(np.float32),
+        normals=normals.astype(np.float32),
+        observed_rgb=observed.astype(np.float32),
+        mask=mask,
+        visibility_bits=vis_bits,
+        visibility_method=visibility_method,
+        gt_probe=(probe.astype(np.float64) * exposure_scale).astype(np.float32),
+        albedo=albedo,
+        meta=meta,
+        vertices=vertices,
+        faces=faces,
+        clean_rgb=(shading * exposure_scale).astype(np.float32),
+        grid=grid,
+    )
+
+
+def make_synthetic_set(
+    n: int,
+    grid: LatLongGrid,
+    seed: int,
+    image_size: int = 128,
+    overcast_fraction: float = 0.25,
+    specular: float = 0.0,
+    noise_sigma: float = 0.0,
+    visibility_method: str = "adaptive",
+    threads: int = 2,
+) -> Iterator[SyntheticFace]:
+    """Yield ``n`` synthetic faces, each under a :func:`~f2l.synth.skies.random_sky`.
+
+    Face i uses ``np.random.default_rng(SeedSequence(seed).spawn(n)[i])`` (independent of n for
+    the first faces), drawing the sky first, then pose, albedo and noise; meta gains ``index``
+    and ``seed``.
+    """
+    from f2l.synth.skies import random_sky
+
+    children = np.random.SeedSequence(int(seed)).spawn(int(n))
+    for i, child in enumerate(children):
+        rng = np.random.default_rng(child)
+        probe, info = random_sky(grid, rng, overcast_fraction=overcast_fraction)
+        sun_dir = info.get("sun_direction")
+        face = render_face(
+            grid,
+            probe,
+            rng,
+            image_size=image_size,
+            specular=specular if info["kind"] == "clear" else 0.0,
+            noise_sigma=noise_sigma,
+            visibility_method=visibility_method,
+            sun_direction=sun_dir,
+            threads=threads,
+            sky_info=info,
+        )
+        face.meta["index"] = i
+        face.meta["seed"] = int(seed)
+        yield face
+
+
+__all__ = [
+    "SyntheticFace",
+    "render_face",
+    "make_synthetic_set",
+    "pose_matrix",
+    "camera_rays",
+    "posed_face_mesh",
+    "FOV_DEG",
+    "FACE_DISTANCE_CM",
+]

@@ -1,0 +1,265 @@
+"""The diffuse transport operator T, held in compact form (packed visibility bits + normals).
+
+    T[p, w] = V(p, w) * max(0, <n_p, w>) * dOmega_w / pi          (N x L)
+
+with V the binary visibility (:func:`f2l.transport.visibility.compute_visibility`), n_p the unit
+normal of pixel p, w the texel-centre directions and dOmega_w the texel solid angles of a
+:class:`~f2l.lighting.grid.LatLongGrid` (texels flattened row-major). Shading of pixel p is
+``albedo * (T @ l)[p]`` for a probe radiance ``l`` (L, 3). T @ 1 is the cosine-weighted
+unoccluded fraction of the hemisphere (1 for an unoccluded pixel, up to grid discretisation).
+
+Only the packed bits (N x ceil(L/8) bytes) and the normals are kept; every product builds T in
+chunks of rows (``chunk_pixels``), so the dense float32 T (4 N L bytes: 312 MiB for N = 10k,
+L = 8192) exists only if :meth:`Transport.dense` is asked for it.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from threading import Lock
+
+import numpy as np
+
+from f2l.lighting.grid import LatLongGrid
+from f2l.transport.visibility import compute_visibility, packed_width
+
+__all__ = ["Transport"]
+
+
+class Transport:
+    """Compact diffuse transport T (N x L) of N face pixels on a lat-long ``grid``.
+
+    vis_bits: (N, ceil(L/8)) uint8, ``np.packbits(V, axis=1, bitorder="little")`` over the
+    row-major texel index; bits must be 0 on back-facing texels (<n, w> <= 0; as produced by
+    :func:`compute_visibility`) -- they are cleared when ``clear_back_facing=True``.
+    normals: (N, 3), normalised here.
+    threads: worker threads for the chunked products (numpy releases the GIL).
+    """
+
+    def __init__(self, vis_bits: np.ndarray, normals: np.ndarray, grid: LatLongGrid,
+                 chunk_pixels: int = 1024, threads: int | None = 2,
+                 clear_back_facing: bool = False) -> None:
+        vis_bits = np.ascontiguousarray(vis_bits, dtype=np.uint8)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if vis_bits.ndim != 2 or vis_bits.shape[1] != packed_width(grid):
+            raise ValueError(
+                f"vis_bits must be (N, {packed_width(grid)}) for a {grid.height}x{grid.width} "
+                f"grid, got {vis_bits.shape}")
+        if len(normals) != len(vis_bits):
+            raise ValueError(f"{len(vis_bits)} rows of bits but {len(normals)} normals")
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+        self.grid = grid
+        self.vis_bits = vis_bits
+        self.normals = normals
+        self.chunk_pixels = int(chunk_pixels)
+        self.threads = max(1, int(threads or os.cpu_count() or 1))
+        # separable cosine: <n, w> dOmega/pi = s_r (nx sin t_c - nz cos t_c) + c_r ny
+        a = grid.row_solid_angles / np.pi
+        self._row_sin = np.sin(grid.phi_rad) * a  # (H,)
+        self._row_cos = np.cos(grid.phi_rad) * a  # (H,)
+        self._col_sin = np.sin(grid.theta_rad)  # (W,)
+        self._col_cos = np.cos(grid.theta_rad)  # (W,)
+        if clear_back_facing:
+            self._clear_back_facing()
+
+    # -- construction ---------------------------------------------------------------------
+    @classmethod
+    def from_mesh(cls, vertices, faces, points, normals, grid: LatLongGrid = LatLongGrid(),
+                  method: str = "adaptive", threads: int | None = 2,
+                  offset: float | None = None, **kwargs) -> "Transport":
+        """Ray-cast the visibility of ``grid`` from ``points`` (see :func:`compute_visibility`)."""
+        bits = compute_visibility(vertices, faces, points, normals, grid, method=method,
+                                  threads=threads, offset=offset)
+        return cls(bits, normals, grid, threads=threads, **kwargs)
+
+    def _clear_back_facing(self) -> None:
+        for s, e in self._chunks():
+            front = (self.normals[s:e] @ self.grid.directions_flat.T) > 0.0
+            self.vis_bits[s:e] &= np.packbits(front, axis=1, bitorder="little")
+
+    # -- sizes --------------------------------------------------------------------------------
+    @property
+    def num_pixels(self) -> int:
+        return len(self.vis_bits)
+
+    @property
+    def num_texels(self) -> int:
+        return self.grid.size
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.num_pixels, self.grid.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the compact form (packed bits + float64 normals)."""
+        return int(self.vis_bits.nbytes + self.normals.nbytes)
+
+    def __repr__(self) -> str:
+        return (f"Transport(N={self.num_pixels}, grid={self.grid.height}x{self.grid.width}, "
+                f"{self.nbytes / 2**20:.1f} MiB packed)")
+
+    # -- dense rows -----------------------------------------------------------------------------
+    def _chunks(self, n: int | None = None):
+        n = self.num_pixels if n is None else n
+        return [(s, min(n, s + self.chunk_pixels)) for s in range(0, n, self.chunk_pixels)]
+
+    def _rows_of(self, bits: np.ndarray, normals: np.ndarray, dtype) -> np.ndarray:
+        """Dense T rows (m, L) for the given packed bits and unit normals."""
+        m = len(bits)
+        h, w = self.grid.shape
+        dtype = np.dtype(dtype)
+        az = (normals[:, 0:1] * self._col_sin - normals[:, 2:3] * self._col_cos).astype(dtype)
+        el = (normals[:, 1:2] * self._row_cos).astype(dtype)  # (m, H)
+        t = np.multiply(az[:, None, :], self._row_sin.astype(dtype)[None, :, None])
+        t += el[:, :, None]
+        np.maximum(t, 0, out=t)
+        t *= np.unpackbits(bits, axis=1, count=h * w, bitorder="little").reshape(m, h, w)
+        return t.reshape(m, h * w)
+
+    def _row_index(self, rows):
+        if rows is None:
+            return slice(None)
+        if isinstance(rows, slice):
+            return rows
+        return np.asarray(rows)
+
+    def dense(self, dtype=np.float32, rows=None) -> np.ndarray:
+        """Materialise T (or the rows ``rows``: slice, index or boolean array) as (n, L)."""
+        idx = self._row_index(rows)
+        bits, normals = self.vis_bits[idx], self.normals[idx]
+        if bits.ndim == 1:  # a single integer row
+            bits, normals = bits[None], normals[None]
+        out = np.empty((len(bits), self.grid.size), dtype=dtype)
+        for s, e in self._chunks(len(bits)):
+            out[s:e] = self._rows_of(bits[s:e], normals[s:e], dtype)
+        return out
+
+    # -- products -------------------------------------------------------------------------------
+    def _map(self, fn, n: int | None = None) -> None:
+        chunks = self._chunks(n)
+        if self.threads == 1 or len(chunks) == 1:
+            for c in chunks:
+                fn(c)
+        else:
+            with ThreadPoolExecutor(max_workers=self.threads) as pool:
+                list(pool.map(fn, chunks))
+
+    def matmul(self, l: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """T @ l for l (L,) or (L, C); returns (N,) or (N, C) in ``dtype``.
+
+        Built and multiplied chunk by chunk (``chunk_pixels`` rows); ``dtype=np.float64``
+        builds T rows and accumulates in float64.
+        """
+        l = np.asarray(l)
+        vec = l.ndim == 1
+        l2 = l.reshape(l.shape[0], -1).astype(dtype, copy=False)
+        if l2.shape[0] != self.grid.size:
+            raise ValueError(f"l must have {self.grid.size} rows (texels), got {l.shape}")
+        out = np.empty((self.num_pixels, l2.shape[1]), dtype=dtype)
+
+        def work(c):
+            s, e = c
+            out[s:e] = self._rows_of(self.vis_bits[s:e], self.normals[s:e], dtype) @ l2
+
+        self._map(work)
+        return out[:, 0] if vec else out
+
+    __matmul__ = matmul
+
+    def project(self, basis: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """T @ basis for a (L, K) basis (e.g. spherical harmonics sampled at texel centres)."""
+        return self.matmul(basis, dtype=dtype)
+
+    def rmatmul(self, g: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """T^T @ g for g (N,) or (N, C); returns (L,) or (L, C) (e.g. a loss gradient w.r.t. l)."""
+        g = np.asarray(g)
+        vec = g.ndim == 1
+        g2 = g.reshape(g.shape[0], -1).astype(dtype, copy=False)
+        if g2.shape[0] != self.num_pixels:
+            raise ValueError(f"g must have {self.num_pixels} rows (pixels), got {g.shape}")
+        out = np.zeros((self.grid.size, g2.shape[1]), dtype=dtype)
+        lock = Lock()
+
+        def work(c):
+            s, e = c
+            part = self._rows_of(self.vis_bits[s:e], self.normals[s:e], dtype).T @ g2[s:e]
+            with lock:
+                out[...] += part
+
+        self._map(work)
+        return out[:, 0] if vec else out
+
+    def row_sums(self, texel_mask: np.ndarray | None = None, dtype=np.float64) -> np.ndarray:
+        """(N,) sum of T over the texels in ``texel_mask`` ((L,) or (H, W) bool; None: all),
+        i.e. T @ 1_mask -- e.g. the irradiance fraction from the ground (lower hemisphere)."""
+        if texel_mask is None:
+            ones = np.ones(self.grid.size, dtype=dtype)
+        else:
+            mask = np.asarray(texel_mask, dtype=bool).reshape(-1)
+            if mask.size != self.grid.size:
+                raise ValueError(f"texel_mask must have {self.grid.size} texels, got {mask.size}")
+            ones = mask.astype(dtype)
+        return self.matmul(ones, dtype=dtype)
+
+    def visible_fraction(self, weighted: bool = True) -> np.ndarray:
+        """(N,) fraction of each pixel's front hemisphere that is visible.
+
+        weighted=True: cosine- and solid-angle-weighted, T @ 1 / sum_w max(0, <n, w>) dOmega/pi
+        (1 - ambient occlusion); False: fraction of front-facing texels whose bit is set.
+        """
+        res = np.empty(self.num_pixels, dtype=np.float64)
+        dirs = self.grid.directions_flat
+        wgt = self.grid.solid_angles_flat / np.pi
+
+        def work(c):
+            s, e = c
+            cos = self.normals[s:e] @ dirs.T
+            front = cos > 0.0
+            bits = np.unpackbits(self.vis_bits[s:e], axis=1, count=self.grid.size,
+                                 bitorder="little").astype(bool) & front
+            if weighted:
+                full = np.where(front, cos, 0.0) @ wgt
+                vis = np.where(bits, cos, 0.0) @ wgt
+            else:
+                full, vis = front.sum(1), bits.sum(1)
+            res[s:e] = np.divide(vis, full, out=np.zeros(e - s), where=full > 0)
+
+        self._map(work)
+        return res
+
+    # -- low rank ---------------------------------------------------------------------------------
+    def lowrank(self, k: int, seed: int = 0, niter: int = 2, oversample: int = 8,
+                max_dense_bytes: int = 1 << 30) -> tuple[np.ndarray, np.ndarray]:
+        """Rank-k factors (U (N, k), Vt (k, L)) float32 with T ~= U @ Vt (singular values folded
+        into U), by randomized SVD: ``torch.svd_lowrank`` on the dense float32 T when it fits in
+        ``max_dense_bytes``, else the same algorithm (Halko et al.) on chunked products.
+
+        Caveat (notes/performance.md): low rank fills hard shadows in; keep exact columns /
+        shadow rays for the sun.
+        """
+        import torch
+
+        k = int(k)
+        n, L = self.shape
+        q = min(k + oversample, n, L)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            if n * L * 4 <= max_dense_bytes:
+                a = torch.from_numpy(self.dense(np.float32))
+                u, s, v = torch.svd_lowrank(a, q=q, niter=niter)
+                u, s, v = u[:, :k], s[:k], v[:, :k]
+                return (u * s).numpy().astype(np.float32), v.T.contiguous().numpy().astype(
+                    np.float32)
+            omega = torch.randn(L, q, dtype=torch.float64).numpy()
+        y = self.matmul(omega, dtype=np.float64)  # (n, q)
+        qm, _ = np.linalg.qr(y)
+        for _ in range(niter):
+            z, _ = np.linalg.qr(self.rmatmul(qm, dtype=np.float64))  # (L, q)
+            qm, _ = np.linalg.qr(self.matmul(z, dtype=np.float64))
+        b = self.rmatmul(qm, dtype=np.float64).T  # (q, L) = Q^T T
+        ub, s, vt = np.linalg.svd(b, full_matrices=False)
+        u = (qm @ ub[:, :k]) * s[:k]
+        return u.astype(np.float32), np.ascontiguousarray(vt[:k], dtype=np.float32)

@@ -1,0 +1,46 @@
+import json
+import subprocess
+
+import numpy as np
+import torch
+
+from f2l.lighting.grid import LatLongGrid
+from f2l.models import discover, load_model
+from f2l.models.base import LightingModel
+from tests.plugin_helpers import f2l_cmd, make_dist, plugin_env
+
+
+def test_builtin_models_register_through_entry_points():
+    models = discover()
+    assert {"sh9", "sh25"} <= set(models)
+    assert models["sh9"].package == "f2l"
+    grid = LatLongGrid(16, 32)
+    sh9 = load_model("sh9", grid)
+    sh25 = load_model("sh25", grid)
+    assert sh9.num_params == 27 and sh25.num_params == 75
+    assert isinstance(sh9, LightingModel)
+    rad = sh9.radiance(torch.as_tensor(sh9.initial_points()))
+    assert rad.shape == (2, grid.size, 3)
+    # the DC-only start is a uniform radiance of 1
+    np.testing.assert_allclose(rad[0].numpy(), 1.0, atol=1e-12)
+
+
+def test_example_plugin_discovered_and_broken_plugin_reported(tmp_path):
+    make_dist(tmp_path, "f2l-example-directional", {"directional": "f2l_example_directional:DirectionalAmbient"})
+    make_dist(tmp_path, "broken-plugin", {"broken": "no_such_module_xyz:Model"})
+    proc = subprocess.run(f2l_cmd("models", "--json"), env=plugin_env(tmp_path), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    rows = {r["name"]: r for r in json.loads(proc.stdout)}
+    assert rows["directional"]["ok"] and rows["directional"]["params"] == 8
+    assert rows["directional"]["package"] == "f2l-example-directional"
+    assert not rows["broken"]["ok"] and "no_such_module_xyz" in rows["broken"]["error"]
+    assert rows["sh9"]["ok"] and rows["sh25"]["ok"]  # the others keep working
+
+
+def test_unknown_model_message():
+    import pytest
+
+    from f2l.models import ModelNotFoundError
+
+    with pytest.raises(ModelNotFoundError, match="unknown lighting model 'nope'.*sh9"):
+        load_model("nope", LatLongGrid(8, 16))
