@@ -43,6 +43,11 @@ def _grid(grid: str):
         raise typer.BadParameter(f"--grid must look like 64x128: {exc}") from exc
 
 
+def _fail(message: str, code: int = 2) -> None:
+    typer.echo(f"f2l: error: {message}", err=True)
+    raise typer.Exit(code=code)
+
+
 @app.command()
 def models(json_out: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """List the installed lighting models (entry-point group f2l.lighting_models)."""
@@ -107,16 +112,23 @@ def estimate(
     workers: int = typer.Option(1, help="Parallel worker processes."),
     threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
     max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
-    max_iter: int = typer.Option(60, help="L-BFGS iterations."),
+    max_iter: int = typer.Option(40, help="Optimiser iterations (L-BFGS, or IRLS for linear models)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s)."""
     from f2l.estimate.runner import run_estimates
+    from f2l.models.registry import ModelNotFoundError
 
-    summary = run_estimates(
-        shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
-        max_iter=max_iter, progress=not json_out,
-    )
+    missing = [str(s) for s in shards if not Path(s).exists()]
+    if missing:
+        _fail(f"no such shard path: {', '.join(missing)}")
+    try:
+        summary = run_estimates(
+            shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
+            max_iter=max_iter, progress=not json_out,
+        )
+    except ModelNotFoundError as exc:
+        _fail(str(exc.args[0]))
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["ok"] == 0 and summary["total"] > 0:
         raise typer.Exit(code=1)

@@ -90,6 +90,8 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
         safe_id = _safe_name(record.face_id)
         probe_rel = f"probes/{model_name}/{safe_id}.exr"
         preview_rel = f"previews/{model_name}/{safe_id}.png"
+        (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
         write_exr(Path(out_dir) / probe_rel, result.probe,
                   metadata={"f2l_model": model_name, "f2l_face_id": record.face_id, "f2l_convention": "latlong,+Y up,centre=-Z"})
         save_png(Path(out_dir) / preview_rel, tonemap(result.probe))
@@ -139,7 +141,7 @@ def run_estimates(
     workers: int = 1,
     threads: int = 2,
     max_pixels: int | None = None,
-    max_iter: int = 60,
+    max_iter: int = 40,
     progress: bool = True,
     config: EstimatorConfig | None = None,
 ) -> dict:

@@ -15,9 +15,14 @@ Albedo here is linear RGB reflectance in [0, 1].
 
 from __future__ import annotations
 
+import json
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
+
+TABLE_FILE = Path(__file__).resolve().parents[1] / "data" / "skin_albedo_table.json"
+TABLE_SIZE = 49
 
 T_MIN = -0.25
 T_MAX = 1.75
@@ -34,35 +39,62 @@ def _skin_spectra():
     return shape, np.asarray(light.values, dtype=np.float64), np.asarray(dark.values, dtype=np.float64)
 
 
+@lru_cache(maxsize=1)
+def _xyz_weights() -> np.ndarray:
+    """(n_lambda, 3) weights W with XYZ = R @ W: S_D65 * cmf / sum(S_D65 * ybar) (Y of white = 1)."""
+    import colour
+
+    shape = _skin_spectra()[0]
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape).values
+    illuminant = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values
+    weights = illuminant[:, None] * cmfs
+    return weights / weights[:, 1].sum()
+
+
 def skin_albedo(t: np.ndarray) -> np.ndarray:
     """Linear Rec.709 albedo (..., 3) of the melanin-interpolated skin reflectance at tone ``t``."""
     import colour
 
-    shape, light, dark = _skin_spectra()
+    _, light, dark = _skin_spectra()
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     refl = np.exp((1.0 - t[:, None]) * np.log(light)[None] + t[:, None] * np.log(dark)[None])
-    refl = np.clip(refl, 0.0, 1.0)
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
-    illuminant = colour.SDS_ILLUMINANTS["D65"].copy().align(shape)
-    xyz = np.stack(
-        [colour.sd_to_XYZ(colour.SpectralDistribution(r, shape.wavelengths), cmfs, illuminant) for r in refl]
-    ) / 100.0
-    rgb = colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], illuminant=colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
+    xyz = np.clip(refl, 0.0, 1.0) @ _xyz_weights()
+    rgb = colour.XYZ_to_RGB(
+        xyz, colour.RGB_COLOURSPACES["sRGB"],
+        illuminant=colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"],
+    )
     return np.clip(rgb, 1e-4, 1.0)
 
 
 @lru_cache(maxsize=1)
-def skin_albedo_table(n: int = 49) -> np.ndarray:
-    """Albedos (n, 3) for tones evenly spaced over [T_MIN, T_MAX] (the prior's training data)."""
-    a = skin_albedo(np.linspace(T_MIN, T_MAX, n))
+def skin_albedo_table() -> np.ndarray:
+    """Albedos (TABLE_SIZE, 3) at tones evenly spaced over [T_MIN, T_MAX].
+
+    Shipped as ``f2l/data/skin_albedo_table.json`` (importing colour-science costs seconds);
+    ``python -m f2l.estimate.skin`` regenerates it and a test checks it against the spectra.
+    """
+    data = json.loads(TABLE_FILE.read_text())
+    a = np.asarray(data["albedo_linear_rec709"], dtype=np.float64)
     a.setflags(write=False)
     return a
+
+
+def compute_skin_albedo_table() -> np.ndarray:
+    return skin_albedo(np.linspace(T_MIN, T_MAX, TABLE_SIZE))
+
+
+def albedo_at_tone(t: np.ndarray) -> np.ndarray:
+    """Albedo (n, 3) at tones t by log-linear interpolation of the shipped table."""
+    table = np.log(skin_albedo_table())
+    grid_t = np.linspace(T_MIN, T_MAX, TABLE_SIZE)
+    t = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), T_MIN, T_MAX)
+    return np.exp(np.stack([np.interp(t, grid_t, table[:, c]) for c in range(3)], axis=-1))
 
 
 def sample_skin_albedo(rng: np.random.Generator, n: int = 1, jitter: float = 0.04) -> np.ndarray:
     """Random skin albedos (n, 3), light to dark: a uniform tone t plus 4% multiplicative jitter."""
     t = rng.uniform(T_MIN, T_MAX, size=n)
-    base = skin_albedo(t)
+    base = albedo_at_tone(t)
     return np.clip(base * np.exp(rng.normal(0.0, jitter, size=(n, 3))), 1e-4, 1.0)
 
 
@@ -111,3 +143,15 @@ def skin_albedo_mean() -> np.ndarray:
     """Mixture mean albedo (3,) — the estimator's albedo initialisation."""
     g = skin_albedo_gmm()
     return np.exp((g["weights"][:, None] * g["means"]).sum(0))
+
+
+if __name__ == "__main__":  # regenerate the shipped table
+    TABLE_FILE.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "description": "Linear Rec.709 skin albedo at melanin tones t = linspace(T_MIN, T_MAX, TABLE_SIZE); "
+        "see f2l/estimate/skin.py",
+        "t_min": T_MIN, "t_max": T_MAX,
+        "albedo_linear_rec709": [[round(float(v), 8) for v in row] for row in compute_skin_albedo_table()],
+    }
+    TABLE_FILE.write_text(json.dumps(payload, indent=1) + "\n")
+    print(f"wrote {TABLE_FILE}")

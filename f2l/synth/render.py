@@ -113,7 +113,7 @@ def posed_face_mesh(head_pose_deg, subdivisions: int = 2):
     return v, np.asarray(mesh.faces, dtype=np.int64), n
 
 
-def _rasterise(vertices, faces, vnormals, rays):
+def _rasterise(vertices, faces, rays):
     """Primary rays from the origin (embreex INTERSECT). Returns (hit mask (S,S), primID,
     barycentric (u, v) per pixel) with P = (1-u-v) v0 + u v1 + v v2."""
     from embreex.mesh_construction import TriangleMesh
@@ -143,27 +143,12 @@ def _shadow_rays(vertices, faces, origins, direction) -> np.ndarray:
     return scene.run(o, d, query="OCCLUDED") != -1
 
 
-def _transport_matmul(vis_bits, normals, grid: LatLongGrid, l_flat: np.ndarray) -> np.ndarray:
-    """T @ l (N, 3) with T[p, w] = (1/pi) V max(0, <n, w>) dw; via f2l.transport.Transport."""
-    try:
-        from f2l.transport import Transport  # type: ignore[attr-defined]
-    except ImportError:
-        Transport = None
-    if Transport is not None:
-        T = Transport(vis_bits, normals, grid)
-        return np.asarray(T.matmul(np.asarray(l_flat, dtype=np.float32)), dtype=np.float64)
-    # Fallback with the same definition (chunked dense product).
-    from f2l.transport.visibility import unpack_bits
+def _transport_matmul(vis_bits, normals, grid: LatLongGrid, l_flat, threads: int = 2):
+    """T @ l (N, 3) float64, T[p, w] = (1/pi) V max(0, <n, w>) dw (f2l.transport.Transport)."""
+    from f2l.transport import Transport
 
-    dirs = grid.directions_flat
-    sa = grid.solid_angles_flat
-    out = np.zeros((len(normals), l_flat.shape[1]), dtype=np.float64)
-    for s in range(0, len(normals), 1024):
-        e = min(len(normals), s + 1024)
-        V = unpack_bits(vis_bits[s:e], grid.size).astype(np.float64)
-        cos = np.maximum(np.asarray(normals[s:e], np.float64) @ dirs.T, 0.0)
-        out[s:e] = ((V * cos * sa[None, :]) / math.pi) @ l_flat
-    return out
+    T = Transport(vis_bits, normals, grid, threads=threads)
+    return np.asarray(T.matmul(np.asarray(l_flat, dtype=np.float64), dtype=np.float64))
 
 
 def _blurred_probe_lookup(grid: LatLongGrid, probe: np.ndarray, directions: np.ndarray):
@@ -173,7 +158,9 @@ def _blurred_probe_lookup(grid: LatLongGrid, probe: np.ndarray, directions: np.n
 
     blurred = np.stack(
         [
-            gaussian_filter(probe[..., c].astype(np.float64), BACKGROUND_BLUR_TEXELS, mode=("nearest", "wrap"))
+            gaussian_filter(
+                probe[..., c].astype(np.float64), BACKGROUND_BLUR_TEXELS, mode=("nearest", "wrap")
+            )
             for c in range(probe.shape[-1])
         ],
         axis=-1,
@@ -251,7 +238,7 @@ def render_face(
 
     vertices, faces, vnormals = posed_face_mesh(head_pose_deg)
     rays = camera_rays(image_size)
-    prim, bu, bv = _rasterise(vertices, faces, vnormals, rays)
+    prim, bu, bv = _rasterise(vertices, faces, rays)
     d_flat = rays.reshape(-1, 3)
     hit = prim >= 0
     idx = np.nonzero(hit)[0]
@@ -260,25 +247,22 @@ def render_face(
     points = np.einsum("nk,nkc->nc", w, vertices[tri])
     normals = np.einsum("nk,nkc->nc", w, vnormals[tri])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    # Grazing hits (<n, -d> <= MIN_FACING) are shaded for the photo but left out of the record.
     facing = np.einsum("nc,nc->n", normals, -d_flat[idx]) > MIN_FACING
-    idx, points, normals = idx[facing], points[facing], normals[facing]
-    pixel_rc = np.stack(np.divmod(idx, image_size), axis=1).astype(np.int32)
 
-    from f2l.transport.visibility import compute_visibility
+    from f2l.transport import compute_visibility
 
-    vis_bits = compute_visibility(
+    vis_all = compute_visibility(
         vertices, faces, points, normals, grid, method=visibility_method, threads=threads
     )
     l_flat = probe.reshape(-1, 3).astype(np.float64)
-    shading = albedo[None, :] * _transport_matmul(vis_bits, normals, grid, l_flat)
+    shading = albedo[None, :] * _transport_matmul(vis_all, normals, grid, l_flat, threads)
 
     if specular > 0.0:
-        if sun_direction is None:
-            sun_dir, e_sun = _sun_from_probe(grid, probe)
-        else:
+        sun_dir, e_sun = _sun_from_probe(grid, probe)
+        if sun_direction is not None:
             sun_dir = np.asarray(sun_direction, dtype=np.float64)
             sun_dir = sun_dir / np.linalg.norm(sun_dir)
-            _, e_sun = _sun_from_probe(grid, probe)
         n_dot_l = normals @ sun_dir
         h = sun_dir[None, :] - d_flat[idx]
         h /= np.linalg.norm(h, axis=1, keepdims=True)
@@ -289,8 +273,8 @@ def render_face(
         spec = specular * (m + 8.0) / (8.0 * math.pi) * n_dot_h**m * np.maximum(n_dot_l, 0.0) * lit
         shading = shading + spec[:, None] * e_sun[None, :]
 
-    # exposure
-    p98 = float(np.percentile(shading, EXPOSURE_PERCENTILE)) if len(shading) else 0.0
+    # exposure: the 98th percentile of the recorded face pixels' linear values -> 0.85
+    p98 = float(np.percentile(shading[facing], EXPOSURE_PERCENTILE)) if facing.any() else 0.0
     exposure_scale = EXPOSURE_TARGET / p98 if p98 > 0 else 1.0
 
     image = _blurred_probe_lookup(grid, probe, rays).reshape(-1, 3)
@@ -300,6 +284,10 @@ def render_face(
         image = image + rng.normal(0.0, float(noise_sigma), size=image.shape)
     photo = np.round(_srgb_encode(image) * 255.0).astype(np.uint8).reshape(image_size, image_size, 3)
 
+    # the record: camera-facing face pixels only
+    idx, points, normals, shading = idx[facing], points[facing], normals[facing], shading[facing]
+    vis_bits = np.ascontiguousarray(vis_all[facing])
+    pixel_rc = np.stack(np.divmod(idx, image_size), axis=1).astype(np.int32)
     face_codes = photo.reshape(-1, 3)[idx]
     observed = _srgb_decode(face_codes.astype(np.float64) / 255.0)
     mask = ~(face_codes == 255).any(axis=1) & ~(face_codes <= 2).all(axis=1)
@@ -318,6 +306,7 @@ def render_face(
         specular=float(specular),
         noise_sigma=float(noise_sigma),
         num_pixels=int(len(idx)),
+        num_grazing=int((~facing).sum()),
         num_masked=int(mask.sum()),
         grid=[grid.height, grid.width],
     )
@@ -350,12 +339,13 @@ def make_synthetic_set(
     noise_sigma: float = 0.0,
     visibility_method: str = "adaptive",
     threads: int = 2,
+    albedo=None,
 ) -> Iterator[SyntheticFace]:
     """Yield ``n`` synthetic faces, each under a :func:`~f2l.synth.skies.random_sky`.
 
     Face i uses ``np.random.default_rng(SeedSequence(seed).spawn(n)[i])`` (independent of n for
-    the first faces), drawing the sky first, then pose, albedo and noise; meta gains ``index``
-    and ``seed``.
+    the first faces), drawing the sky first, then pose, albedo (unless ``albedo`` fixes one for
+    every face) and noise; meta gains ``index`` and ``seed``.
     """
     from f2l.synth.skies import random_sky
 
@@ -369,6 +359,7 @@ def make_synthetic_set(
             probe,
             rng,
             image_size=image_size,
+            albedo=albedo,
             specular=specular if info["kind"] == "clear" else 0.0,
             noise_sigma=noise_sigma,
             visibility_method=visibility_method,

@@ -22,7 +22,7 @@ from threading import Lock
 import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
-from f2l.transport.visibility import compute_visibility, packed_width
+from f2l.transport.visibility import compute_visibility, front_cosines, packed_width
 
 __all__ = ["Transport"]
 
@@ -31,8 +31,10 @@ class Transport:
     """Compact diffuse transport T (N x L) of N face pixels on a lat-long ``grid``.
 
     vis_bits: (N, ceil(L/8)) uint8, ``np.packbits(V, axis=1, bitorder="little")`` over the
-    row-major texel index; bits must be 0 on back-facing texels (<n, w> <= 0; as produced by
-    :func:`compute_visibility`) -- they are cleared when ``clear_back_facing=True``.
+    row-major texel index. Precondition: bits are 0 on back-facing texels (<n, w> <= 0), as
+    :func:`compute_visibility` guarantees; the products rely on it (separable cosine, no clamp)
+    while :meth:`dense` clamps. For bits of other origin pass ``clear_back_facing=True``
+    (one pass over the bits, clears them in place on a copy).
     normals: (N, 3), normalised here.
     threads: worker threads for the chunked products (numpy releases the GIL).
     """
@@ -40,7 +42,7 @@ class Transport:
     def __init__(self, vis_bits: np.ndarray, normals: np.ndarray, grid: LatLongGrid,
                  chunk_pixels: int = 1024, threads: int | None = 2,
                  clear_back_facing: bool = False) -> None:
-        vis_bits = np.ascontiguousarray(vis_bits, dtype=np.uint8)
+        vis_bits = np.array(vis_bits, dtype=np.uint8, order="C", copy=True if clear_back_facing else None)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         if vis_bits.ndim != 2 or vis_bits.shape[1] != packed_width(grid):
             raise ValueError(
@@ -61,6 +63,7 @@ class Transport:
         self._row_cos = np.cos(grid.phi_rad) * a  # (H,)
         self._col_sin = np.sin(grid.theta_rad)  # (W,)
         self._col_cos = np.cos(grid.theta_rad)  # (W,)
+        self._texel_weights = grid.directions_flat * (grid.solid_angles_flat / np.pi)[:, None]
         if clear_back_facing:
             self._clear_back_facing()
 
@@ -76,7 +79,7 @@ class Transport:
 
     def _clear_back_facing(self) -> None:
         for s, e in self._chunks():
-            front = (self.normals[s:e] @ self.grid.directions_flat.T) > 0.0
+            front = front_cosines(self.normals[s:e], self.grid).reshape(e - s, -1) > 0.0
             self.vis_bits[s:e] &= np.packbits(front, axis=1, bitorder="little")
 
     # -- sizes --------------------------------------------------------------------------------
@@ -147,22 +150,35 @@ class Transport:
             with ThreadPoolExecutor(max_workers=self.threads) as pool:
                 list(pool.map(fn, chunks))
 
+    def _bits_rows(self, s: int, e: int, dtype) -> np.ndarray:
+        """V rows s:e as (m, L) 0/1 in ``dtype``."""
+        return np.unpackbits(self.vis_bits[s:e], axis=1, count=self.grid.size,
+                             bitorder="little").astype(dtype)
+
     def matmul(self, l: np.ndarray, dtype=np.float32) -> np.ndarray:
         """T @ l for l (L,) or (L, C); returns (N,) or (N, C) in ``dtype``.
 
-        Built and multiplied chunk by chunk (``chunk_pixels`` rows); ``dtype=np.float64``
-        builds T rows and accumulates in float64.
+        Uses the separable cosine: with V = 0 on back-facing texels,
+        ``T @ l = sum_k n[:, k] * (V @ (w_k dOmega/pi * l))`` for k = x, y, z, so each chunk of
+        ``chunk_pixels`` rows only unpacks its bits and makes one (m, L) x (L, 3C) product.
+        ``dtype=np.float64`` unpacks and accumulates in float64.
         """
         l = np.asarray(l)
         vec = l.ndim == 1
-        l2 = l.reshape(l.shape[0], -1).astype(dtype, copy=False)
+        l2 = l.reshape(l.shape[0], -1)
         if l2.shape[0] != self.grid.size:
             raise ValueError(f"l must have {self.grid.size} rows (texels), got {l.shape}")
-        out = np.empty((self.num_pixels, l2.shape[1]), dtype=dtype)
+        c = l2.shape[1]
+        m3 = np.concatenate([self._texel_weights[:, k:k + 1] * l2 for k in range(3)], axis=1)
+        m3 = m3.astype(dtype, copy=False)
+        normals = self.normals.astype(dtype, copy=False)
+        out = np.empty((self.num_pixels, c), dtype=dtype)
 
-        def work(c):
-            s, e = c
-            out[s:e] = self._rows_of(self.vis_bits[s:e], self.normals[s:e], dtype) @ l2
+        def work(chunk):
+            s, e = chunk
+            r = self._bits_rows(s, e, dtype) @ m3
+            n = normals[s:e]
+            out[s:e] = n[:, 0:1] * r[:, :c] + n[:, 1:2] * r[:, c:2 * c] + n[:, 2:3] * r[:, 2 * c:]
 
         self._map(work)
         return out[:, 0] if vec else out
@@ -174,22 +190,30 @@ class Transport:
         return self.matmul(basis, dtype=dtype)
 
     def rmatmul(self, g: np.ndarray, dtype=np.float32) -> np.ndarray:
-        """T^T @ g for g (N,) or (N, C); returns (L,) or (L, C) (e.g. a loss gradient w.r.t. l)."""
+        """T^T @ g for g (N,) or (N, C); returns (L,) or (L, C) (e.g. a loss gradient w.r.t. l).
+
+        Separable form: ``T^T g = sum_k (w_k dOmega/pi) * (V^T (n[:, k] * g))``.
+        """
         g = np.asarray(g)
         vec = g.ndim == 1
-        g2 = g.reshape(g.shape[0], -1).astype(dtype, copy=False)
+        g2 = g.reshape(g.shape[0], -1)
         if g2.shape[0] != self.num_pixels:
             raise ValueError(f"g must have {self.num_pixels} rows (pixels), got {g.shape}")
-        out = np.zeros((self.grid.size, g2.shape[1]), dtype=dtype)
+        c = g2.shape[1]
+        acc = np.zeros((self.grid.size, 3 * c), dtype=dtype)
         lock = Lock()
 
-        def work(c):
-            s, e = c
-            part = self._rows_of(self.vis_bits[s:e], self.normals[s:e], dtype).T @ g2[s:e]
+        def work(chunk):
+            s, e = chunk
+            n = self.normals[s:e]
+            y = np.concatenate([n[:, k:k + 1] * g2[s:e] for k in range(3)], axis=1)
+            part = self._bits_rows(s, e, dtype).T @ y.astype(dtype, copy=False)
             with lock:
-                out[...] += part
+                acc[...] += part
 
         self._map(work)
+        w = self._texel_weights.astype(dtype, copy=False)
+        out = w[:, 0:1] * acc[:, :c] + w[:, 1:2] * acc[:, c:2 * c] + w[:, 2:3] * acc[:, 2 * c:]
         return out[:, 0] if vec else out
 
     def row_sums(self, texel_mask: np.ndarray | None = None, dtype=np.float64) -> np.ndarray:
@@ -211,12 +235,11 @@ class Transport:
         (1 - ambient occlusion); False: fraction of front-facing texels whose bit is set.
         """
         res = np.empty(self.num_pixels, dtype=np.float64)
-        dirs = self.grid.directions_flat
         wgt = self.grid.solid_angles_flat / np.pi
 
         def work(c):
             s, e = c
-            cos = self.normals[s:e] @ dirs.T
+            cos = front_cosines(self.normals[s:e], self.grid).reshape(e - s, -1)
             front = cos > 0.0
             bits = np.unpackbits(self.vis_bits[s:e], axis=1, count=self.grid.size,
                                  bitorder="little").astype(bool) & front

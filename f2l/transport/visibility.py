@@ -121,45 +121,58 @@ class _Stats:
 @dataclass(frozen=True)
 class _Cells:
     factor: int
-    coarse: LatLongGrid
-    centres: np.ndarray  # (Lc, 3) float64
-    centres32: np.ndarray  # (Lc, 3) float32
-    sin_radius: np.ndarray  # (Lc,) sin of the max centre-to-texel-centre angle (+ margin)
-    texels: np.ndarray  # (Lc, f*f) flat fine texel indices of each cell
-    sin_phi: np.ndarray  # (Lc, f*f) sin / cos of the polar angle and azimuth of those texels
+    shape: tuple  # (Hc, Wc) cells
+    centres_grid: "_Centres"  # cell-centre angles, for front_cosines
+    centres32: np.ndarray  # (Lc, 3) float32 cell-centre directions
+    sin_radius: np.ndarray  # (Lc,) sin of the largest centre-to-texel-centre angle (+ margin)
+    texels: np.ndarray  # (Lc, f*f) flat fine texel indices of each cell, row-major in the cell
+    sin_phi: np.ndarray  # (Hc, f) sin / cos of the polar angle of each cell row's texel rows
     cos_phi: np.ndarray
-    sin_theta: np.ndarray
+    sin_theta: np.ndarray  # (Wc, f) sin / cos of the azimuth of each cell column's texel columns
     cos_theta: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Centres:
+    """Duck-typed stand-in for LatLongGrid in front_cosines (the coarse height may be odd)."""
+
+    phi_rad: np.ndarray
+    theta_rad: np.ndarray
 
 
 def _coarse_factor(grid: LatLongGrid, factor: int) -> int:
     for f in range(int(factor), 1, -1):
-        if grid.height % f == 0 and grid.width % f == 0 and (grid.height // f) % 2 == 0:
+        if grid.height % f == 0 and grid.width % f == 0:
             return f
     return 1
 
 
 def _cells(grid: LatLongGrid, f: int) -> _Cells:
     hc, wc = grid.height // f, grid.width // f
-    coarse = LatLongGrid(hc, wc)
-    centres = coarse.directions_flat
+    # cell centres (a texel corner for even f), same formula as LatLongGrid.directions
+    phi = (np.arange(hc) + 0.5) * np.pi / hc
+    theta = np.pi * (2.0 * (np.arange(wc) + 0.5) / wc - 1.0)
+    centres = np.stack(np.broadcast_arrays(
+        np.sin(phi)[:, None] * np.sin(theta), np.cos(phi)[:, None],
+        -np.sin(phi)[:, None] * np.cos(theta)), axis=-1).reshape(-1, 3)
     rows = (np.arange(hc)[:, None, None, None] * f + np.arange(f)[None, None, :, None])
     cols = (np.arange(wc)[None, :, None, None] * f + np.arange(f)[None, None, None, :])
     texels = (rows * grid.width + cols).reshape(hc * wc, f * f)
-    fine = grid.directions_flat[texels]  # (Lc, f2, 3)
-    cos = np.einsum("cjk,ck->cj", fine, centres).min(axis=1)
+    cos = np.einsum("cjk,ck->cj", grid.directions_flat[texels], centres).min(axis=1)
     radius = np.arccos(np.clip(cos, -1.0, 1.0))
+    trows = np.arange(hc)[:, None] * f + np.arange(f)
+    tcols = np.arange(wc)[:, None] * f + np.arange(f)
     return _Cells(
         factor=f,
-        coarse=coarse,
-        centres=centres,
+        shape=(hc, wc),
+        centres_grid=_Centres(phi_rad=phi, theta_rad=theta),
         centres32=centres.astype(np.float32),
         sin_radius=np.sin(radius) + 1e-9,
         texels=np.ascontiguousarray(texels),
-        sin_phi=np.sin(grid.phi_rad)[texels // grid.width],
-        cos_phi=np.cos(grid.phi_rad)[texels // grid.width],
-        sin_theta=np.sin(grid.theta_rad)[texels % grid.width],
-        cos_theta=np.cos(grid.theta_rad)[texels % grid.width],
+        sin_phi=np.sin(grid.phi_rad)[trows],
+        cos_phi=np.cos(grid.phi_rad)[trows],
+        sin_theta=np.sin(grid.theta_rad)[tcols],
+        cos_theta=np.cos(grid.theta_rad)[tcols],
     )
 
 
@@ -193,10 +206,14 @@ def front_cosines(normals: np.ndarray, grid: LatLongGrid) -> np.ndarray:
 
 def _cell_texel_cosines(normals: np.ndarray, cells: "_Cells", pix: np.ndarray,
                         cell: np.ndarray) -> np.ndarray:
-    """(m, f*f) <n_pix, w> for the texels of cells ``cell``; same rounding as front_cosines."""
+    """(m, f*f) <n_pix, w> over the texels of cells ``cell`` (row-major within the cell), with
+    the same floating-point operations (hence rounding) as front_cosines."""
     n = normals[pix]
-    az = n[:, 0:1] * cells.sin_theta[cell] - n[:, 2:3] * cells.cos_theta[cell]
-    return cells.sin_phi[cell] * az + n[:, 1:2] * cells.cos_phi[cell]
+    row, col = np.divmod(cell, cells.shape[1])
+    az = n[:, 0:1] * cells.sin_theta[col] - n[:, 2:3] * cells.cos_theta[col]  # (m, f)
+    cos = cells.sin_phi[row][:, :, None] * az[:, None, :]
+    cos += (n[:, 1:2] * cells.cos_phi[row])[:, :, None]
+    return cos.reshape(len(cell), -1)
 
 
 def _exact_chunk(scene: _Scene, origins, normals, grid: LatLongGrid, dirs32, stats: _Stats):
@@ -215,18 +232,18 @@ def _adaptive_chunk(scene: _Scene, origins, normals, grid: LatLongGrid, dirs32, 
     n = len(origins)
     f = cells.factor
     f2 = f * f
-    hc, wc = cells.coarse.shape
+    hc, wc = cells.shape
     lc = hc * wc
-    # classify cells: bound on the centre cosine, exact per-texel test where it is inconclusive
-    nc = front_cosines(normals, cells.coarse).reshape(n, lc)
+    # classify cells: a bound on the centre cosine, then the exact per-texel test where the
+    # bound is inconclusive (cells near the pixel's horizon)
+    nc = front_cosines(normals, cells.centres_grid).reshape(n, lc)
     front = nc > cells.sin_radius
-    unsure = np.abs(nc) <= cells.sin_radius
-    pu, cu = np.nonzero(unsure)
+    pu, cu = np.nonzero(np.abs(nc) <= cells.sin_radius)
     front_u = _cell_texel_cosines(normals, cells, pu, cu) > 0.0  # (mu, f2)
     all_front = front_u.all(axis=1)
     front[pu[all_front], cu[all_front]] = True
-    mixed_u = front_u.any(axis=1) & ~all_front
-    ph, ch, front_h = pu[mixed_u], cu[mixed_u], front_u[mixed_u]  # horizon cells
+    horizon = front_u.any(axis=1) & ~all_front
+    ph, ch, front_h = pu[horizon], cu[horizon], front_u[horizon]
     tex_h = cells.texels[ch]  # (m, f2)
 
     # 1. one ray per front cell, through its centre

@@ -50,7 +50,7 @@ class _SphericalHarmonics(LightingModel):
         return shlib.sh_basis_grid(self.grid, self.order)
 
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
-        basis = torch.as_tensor(self.linear_basis(), dtype=params.dtype, device=params.device)
+        basis = torch.as_tensor(np.array(self.linear_basis()), dtype=params.dtype, device=params.device)
         coeffs = params.reshape(params.shape[0], self.num_coeffs, 3)
         return torch.einsum("lk,bkc->blc", basis, coeffs)
 
@@ -62,6 +62,15 @@ class _SphericalHarmonics(LightingModel):
             band = coeffs[:, l * l : (l + 1) * (l + 1), :]
             nll = nll + 0.5 * (band / (SIGMA_BAND[l] * dc[:, None, None])).pow(2).sum((1, 2))
         return nll
+
+    def prior_precision(self, theta: np.ndarray) -> np.ndarray:
+        """Diagonal of prior_nll's Hessian in theta (K, 3) with the DC scale held fixed (IRLS)."""
+        coeffs = np.asarray(theta, dtype=np.float64).reshape(self.num_coeffs, 3)
+        dc = abs(coeffs[0].mean()) + 1e-9
+        prec = np.zeros_like(coeffs)
+        for l in range(1, self.order + 1):
+            prec[l * l : (l + 1) * (l + 1)] = 1.0 / (SIGMA_BAND[l] * dc) ** 2
+        return prec
 
     def probe(self, params: np.ndarray) -> np.ndarray:
         """Reconstructed radiance truncated at zero (as the paper does for SH probes)."""

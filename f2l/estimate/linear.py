@@ -1,0 +1,92 @@
+"""Fast exact path for models linear in their parameters (``linear_basis``), e.g. SH9/SH25.
+
+With radiance l = B theta (per channel) and shading s = rho ⊙ (T B theta), the data term depends
+only on psi_c = rho_c theta_c, so the objective of ``estimator.py`` splits into
+ (1) psi: Charbonnier data term + l >= 0 penalty + light prior — convex per channel, solved by
+     iteratively reweighted least squares (IRLS; the Charbonnier majoriser
+     C(r) <= C(r0) + (r^2 - r0^2) / (2 C(r0)) gives a K x K normal system per iteration), and
+ (2) rho: light prior (theta = psi / rho) + skin-albedo prior — three unknowns, no pixels involved.
+Two rounds of (1)+(2) reach the optimum of the joint objective; it is convex in psi, so one start
+suffices. Only ``domain == "sphere"`` linear models take this path (a sky model's ground bounce
+couples rho_g with theta).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+RIDGE = 1e-10
+
+
+def solve_psi(
+    A: np.ndarray,  # (N, K) T @ B restricted to the used pixels
+    y: np.ndarray,  # (N, 3) observed
+    neg_basis: np.ndarray,  # (J, K) basis at the directions where l >= 0 is enforced
+    neg_w: np.ndarray,  # (J,) normalised solid-angle weights
+    prior_diag: np.ndarray,  # (K, 3) quadratic light-prior precision in psi units (already weighted)
+    eps: float,
+    scale: float,
+    neg_weight: float,
+    psi0: np.ndarray,  # (K, 3)
+    iters: int = 40,
+    tol: float = 1e-9,
+    floor: float = 1e-5,
+) -> tuple[np.ndarray, int]:
+    """IRLS for min_psi mean_{p,c} C(A psi_c - y_c)/scale + neg + prior; returns (psi, iterations)."""
+    n = A.shape[0]
+    At = np.ascontiguousarray(A.T)
+    psi = psi0.copy()
+    it = 0
+    for it in range(1, iters + 1):
+        r = A @ psi - y
+        c = np.sqrt(r * r + eps * eps)
+        w = 1.0 / (2.0 * np.maximum(c, floor * scale) * 3 * n * scale)  # (N, 3)
+        rad = neg_basis @ psi  # (J, 3)
+        mean_l = max(float((np.maximum(rad, 0) * neg_w[:, None]).sum() / 3), 1e-12)
+        active = (rad < 0).astype(np.float64) * neg_w[:, None] * (neg_weight / (3 * mean_l**2))
+        Aw = At[None, :, :] * w.T[:, None, :]  # (3, K, N)
+        G = Aw @ A  # (3, K, K)
+        if active.any():
+            G += (neg_basis.T[None] * active.T[:, None, :]) @ neg_basis
+        k = A.shape[1]
+        diag = np.arange(k)
+        trace = np.trace(G, axis1=1, axis2=2)
+        G[:, diag, diag] += prior_diag.T + (RIDGE * trace / k)[:, None]
+        rhs = np.einsum("ckn,nc->ck", Aw, y)
+        new = np.linalg.solve(G, rhs[..., None])[..., 0].T
+        change = np.abs(new - psi).max() / max(np.abs(new).max(), 1e-30)
+        psi = new
+        if change < tol:
+            break
+    return psi, it
+
+
+def prior_diag_for(model, theta: np.ndarray, rho: np.ndarray, weight: float) -> np.ndarray:
+    """Quadratic majoriser of weight * prior_nll around theta, expressed for psi = rho * theta."""
+    quad = getattr(model, "prior_precision", None)
+    if quad is None:
+        return np.zeros_like(theta)
+    prec_theta = np.asarray(quad(theta), dtype=np.float64)  # (K, 3) diag precision in theta units
+    # 0.5 * p * theta^2 = 0.5 * p / rho^2 * psi^2 ; objective carries `weight`
+    return weight * prec_theta / (rho[None, :] ** 2)
+
+
+def solve_albedo(model, psi: np.ndarray, rho0: np.ndarray, light_w: float, albedo_w: float, albedo_nll) -> np.ndarray:
+    """min_rho light_w * prior_nll(psi / rho) + albedo_w * albedo_nll(rho), rho in (0, 1)^3."""
+    psi_t = torch.as_tensor(psi, dtype=torch.float64)
+    r0 = np.clip(rho0, 1e-3, 1 - 1e-3)
+    x = torch.tensor(np.log(r0) - np.log1p(-r0), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([x], lr=1.0, max_iter=30, tolerance_grad=1e-10, tolerance_change=1e-12,
+                            line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        rho = torch.sigmoid(x)
+        theta = (psi_t / rho[None, :]).reshape(1, -1)
+        loss = light_w * model.prior_nll(theta)[0] + albedo_w * albedo_nll(rho[None])[0]
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return torch.sigmoid(x).detach().numpy()
