@@ -52,8 +52,8 @@ class DirectionalAmbient(LightingModel):
         )
 
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
-        dirs = torch.as_tensor(self.grid.directions_flat, dtype=params.dtype)
-        d_omega = torch.as_tensor(self.grid.solid_angles_flat, dtype=params.dtype)
+        dirs = torch.as_tensor(np.array(self.grid.directions_flat), dtype=params.dtype)
+        d_omega = torch.as_tensor(np.array(self.grid.solid_angles_flat), dtype=params.dtype)
         sun = self._sun_dirs(params)  # (B, 3)
         lobe = torch.exp(KAPPA * (dirs @ sun.T - 1.0)).T  # (B, L)
         lobe = lobe / (lobe * d_omega).sum(-1, keepdim=True)  # unit energy on this grid

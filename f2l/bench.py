@@ -1,0 +1,133 @@
+"""``f2l bench``: error versus run time of the installed lighting models on synthetic faces.
+
+For each face (≈10k pixels at image_size 128, 64x128 grid by default) it times the transport build
+(Embree visibility, adaptive and exact) once, then each model's estimate split into precompute
+(T@B projection or low-rank factor) and fit, and scores the estimate with the seven §5.1 metrics.
+Prints a Markdown table (time, throughput, peak memory, error) and writes a PNG plot of each
+lighting metric against seconds per face.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from f2l.lighting.grid import LatLongGrid
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_bench(
+    faces: int = 1,
+    models: list[str] | None = None,
+    out_dir: Path = Path("bench_out"),
+    image_size: int = 128,
+    grid: LatLongGrid = LatLongGrid(),
+    threads: int = 2,
+    seed: int = 1,
+    exact_visibility: bool = True,
+) -> dict:
+    from f2l.estimate import EstimatorConfig, EstimationError, FaceObservation, estimate
+    from f2l.metrics import METRIC_NAMES, evaluate_pair
+    from f2l.models.registry import discover, load_model
+    from f2l.synth.render import make_synthetic_set
+    from f2l.transport import compute_visibility
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = models or [n for n, info in discover().items() if info.ok]
+    transport_rows = []
+    model_rows: dict[str, list[dict]] = {n: [] for n in names}
+    for face in make_synthetic_set(faces, grid, seed, image_size=image_size, threads=threads):
+        t0 = time.perf_counter()
+        bits = compute_visibility(face.vertices, face.faces, face.points, face.normals, grid, method="adaptive", threads=threads)
+        adaptive_s = time.perf_counter() - t0
+        row = {"pixels": face.num_pixels, "adaptive_s": adaptive_s}
+        if exact_visibility:
+            t0 = time.perf_counter()
+            exact = compute_visibility(face.vertices, face.faces, face.points, face.normals, grid, method="exact", threads=threads)
+            row["exact_s"] = time.perf_counter() - t0
+            row["bits_differ"] = float(np.unpackbits(bits ^ exact).sum() / (face.num_pixels * grid.size))
+        transport_rows.append(row)
+        sky = face.meta.get("sky", {})
+        overcast = sky.get("kind") == "overcast"
+        gt_sun = None if overcast or sky.get("sun_direction") is None else np.asarray(sky["sun_direction"])
+        obs = FaceObservation(face.normals, face.observed_rgb, face.mask, bits, grid)
+        for name in names:
+            model = load_model(name, grid)
+            try:
+                res = estimate(obs, model, EstimatorConfig(threads=threads))
+            except EstimationError as exc:
+                model_rows[name].append({"error": str(exc)})
+                continue
+            metrics = evaluate_pair(res.probe, face.gt_probe, grid, overcast=overcast, est_sun_dir=res.sun_direction, gt_sun_dir=gt_sun)
+            model_rows[name].append({**res.timings, **metrics, "iterations": res.iterations})
+
+    lines = []
+    tr = transport_rows
+    lines.append(f"Transport ({len(tr)} face(s), {np.mean([r['pixels'] for r in tr]):.0f} pixels, grid {grid.height}x{grid.width}, {threads} threads)")
+    lines.append("")
+    lines.append("| visibility | time per face (s) | Mrays-equivalent/s | bits differing from exact |")
+    lines.append("|---|---|---|---|")
+    rays = np.mean([r["pixels"] for r in tr]) * grid.size / 2 / 1e6
+    lines.append(f"| adaptive | {np.mean([r['adaptive_s'] for r in tr]):.3f} | {rays / np.mean([r['adaptive_s'] for r in tr]):.1f} | "
+                 + (f"{np.mean([r['bits_differ'] for r in tr]):.2e} |" if exact_visibility else "- |"))
+    if exact_visibility:
+        lines.append(f"| exact | {np.mean([r['exact_s'] for r in tr]):.3f} | {rays / np.mean([r['exact_s'] for r in tr]):.1f} | 0 |")
+    lines.append("")
+    head = ["model", "faces", "precompute (s)", "fit (s)", "total (s)", "faces/min"] + list(METRIC_NAMES)
+    lines.append("| " + " | ".join(head) + " |")
+    lines.append("|" + "---|" * len(head))
+    summary = {}
+    for name, rows in model_rows.items():
+        ok = [r for r in rows if "error" not in r]
+        if not ok:
+            lines.append(f"| {name} | 0 | failed: {rows[0]['error'] if rows else 'no faces'} |")
+            continue
+        mean = {k: float(np.nanmean([r[k] for r in ok])) if not all(np.isnan(r[k]) for r in ok) else float("nan")
+                for k in ["precompute_s", "fit_s", "total_s", *METRIC_NAMES]}
+        summary[name] = mean
+        cells = [name, str(len(ok)), f"{mean['precompute_s']:.3f}", f"{mean['fit_s']:.3f}", f"{mean['total_s']:.3f}",
+                 f"{60.0 / mean['total_s']:.0f}"] + [f"{mean[m]:.4g}" for m in METRIC_NAMES]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append(f"peak memory (RSS): {_peak_rss_mb():.0f} MiB")
+    markdown = "\n".join(lines)
+    table_md = out_dir / "bench.md"
+    table_md.write_text(markdown + "\n")
+    (out_dir / "bench.json").write_text(json.dumps({"transport": transport_rows, "models": summary}, indent=2))
+    plot_png = out_dir / "error_vs_runtime.png"
+    _plot(summary, plot_png)
+    return {"markdown": markdown, "table_md": str(table_md), "plot_png": str(plot_png), "summary": summary, "transport": transport_rows}
+
+
+def _plot(summary: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from f2l.metrics import METRIC_NAMES
+
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
+    for ax, metric in zip(axes.ravel(), METRIC_NAMES):
+        for name, mean in summary.items():
+            ax.scatter(mean["total_s"], mean[metric], s=40)
+            ax.annotate(name, (mean["total_s"], mean[metric]), fontsize=8, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel("seconds per face")
+        ax.set_title(metric, fontsize=9)
+        ax.grid(alpha=0.3)
+    axes.ravel()[-1].axis("off")
+    fig.suptitle("f2l bench: error vs run time (synthetic faces)")
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(path)
