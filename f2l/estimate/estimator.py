@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -56,7 +57,7 @@ class EstimatorConfig:
     albedo_prior_weight: float = 1e-3
     negativity_weight: float = 1.0
     max_iter: int = 40
-    tolerance: float = 1e-5
+    tolerance: float = 1e-4
     max_pixels: int | None = None  # subsample usable pixels (deterministic) for speed
     lowrank_k: int = 96
     threads: int = 2
@@ -64,6 +65,9 @@ class EstimatorConfig:
     fixed_albedo: tuple[float, float, float] | None = None
     ground_albedo_init: float = 0.2
     albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
+    # IRLS iterations for linear models: before and after the albedo split. From the L2 start the
+    # objective is within 0.1% of its optimum after ~15 (measured on synthetic faces).
+    irls_iters: tuple[int, int] = (20, 6)
 
 
 @dataclass
@@ -103,17 +107,22 @@ def usable_pixels(obs: FaceObservation) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
+@lru_cache(maxsize=1)
+def _albedo_gmm_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(log-normaliser (K,), means (K,3), precisions (K,3,3)) of the skin-albedo GMM."""
+    gmm = skin_albedo_gmm()
+    covs = gmm["covariances"]
+    precs = np.linalg.inv(covs)
+    lognorm = np.log(gmm["weights"]) - 0.5 * np.linalg.slogdet(covs)[1] - 1.5 * np.log(2 * np.pi)
+    return lognorm, gmm["means"], precs
+
+
 def _albedo_prior_nll(rho: torch.Tensor) -> torch.Tensor:
     """Skin-albedo GMM negative log-likelihood of log(rho), rho (B, 3)."""
-    gmm = skin_albedo_gmm()
-    x = torch.log(rho.clamp_min(1e-6))
-    terms = []
-    for w, mu, cov in zip(gmm["weights"], gmm["means"], gmm["covariances"]):
-        prec = torch.as_tensor(np.linalg.inv(cov), dtype=rho.dtype)
-        d = x - torch.as_tensor(mu, dtype=rho.dtype)
-        logdet = float(np.linalg.slogdet(cov)[1])
-        terms.append(np.log(w) - 0.5 * logdet - 1.5 * np.log(2 * np.pi) - 0.5 * torch.einsum("bi,ij,bj->b", d, prec, d))
-    return -torch.logsumexp(torch.stack(terms, 0), 0)
+    lognorm, means, precs = (torch.as_tensor(a, dtype=rho.dtype) for a in _albedo_gmm_terms())
+    d = torch.log(rho.clamp_min(1e-6))[:, None, :] - means[None]  # (B, K, 3)
+    maha = torch.einsum("bki,kij,bkj->bk", d, precs, d)
+    return -torch.logsumexp(lognorm[None] - 0.5 * maha, dim=1)
 
 
 class _Problem:
@@ -354,10 +363,10 @@ def _estimate_linear(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_start
         prior = linear.prior_diag_for(model, psi / rho[None, :], rho, cfg.light_prior_weight)
         psi, its = linear.solve_psi(
             A, y, prob.neg_basis.numpy(), prob.neg_weights.numpy(), prior, cfg.charbonnier_eps,
-            prob.target_scale, cfg.negativity_weight, psi, iters=cfg.max_iter, tol=cfg.tolerance,
+            prob.target_scale, cfg.negativity_weight, psi, iters=cfg.irls_iters[round_], tol=cfg.tolerance,
         )
         total_iters += its
-        converged = its < cfg.max_iter
+        converged = its < cfg.irls_iters[round_]
         if cfg.fixed_albedo is None and round_ == 0:
             rho = linear.solve_albedo(model, psi, rho, cfg.light_prior_weight, cfg.albedo_prior_weight, _albedo_prior_nll)
     theta = (psi / rho[None, :]).reshape(-1)

@@ -35,26 +35,26 @@ def solve_psi(
 ) -> tuple[np.ndarray, int]:
     """IRLS for min_psi mean_{p,c} C(A psi_c - y_c)/scale + neg + prior; returns (psi, iterations)."""
     n = A.shape[0]
-    At = np.ascontiguousarray(A.T)
+    k = A.shape[1]
+    yT = np.ascontiguousarray(y.T)  # (3, N): channel rows are contiguous
     psi = psi0.copy()
     it = 0
     for it in range(1, iters + 1):
-        r = A @ psi - y
-        c = np.sqrt(r * r + eps * eps)
-        w = 1.0 / (2.0 * np.maximum(c, floor * scale) * 3 * n * scale)  # (N, 3)
+        rT = psi.T @ A.T - yT  # (3, N)
+        cT = np.sqrt(rT * rT + eps * eps)
+        swT = np.sqrt(1.0 / (2.0 * np.maximum(cT, floor * scale) * 3 * n * scale))  # sqrt of IRLS weights
         rad = neg_basis @ psi  # (J, 3)
         mean_l = max(float((np.maximum(rad, 0) * neg_w[:, None]).sum() / 3), 1e-12)
         active = (rad < 0).astype(np.float64) * neg_w[:, None] * (neg_weight / (3 * mean_l**2))
-        Aw = At[None, :, :] * w.T[:, None, :]  # (3, K, N)
-        G = Aw @ A  # (3, K, K)
-        if active.any():
-            G += (neg_basis.T[None] * active.T[:, None, :]) @ neg_basis
-        k = A.shape[1]
-        diag = np.arange(k)
-        trace = np.trace(G, axis1=1, axis2=2)
-        G[:, diag, diag] += prior_diag.T + (RIDGE * trace / k)[:, None]
-        rhs = np.einsum("ckn,nc->ck", Aw, y)
-        new = np.linalg.solve(G, rhs[..., None])[..., 0].T
+        new = np.empty_like(psi)
+        for ch in range(3):
+            Bw = A * swT[ch][:, None]
+            G = Bw.T @ Bw  # symmetric rank-k update (BLAS syrk)
+            if active[:, ch].any():
+                Nb = neg_basis * np.sqrt(active[:, ch])[:, None]
+                G += Nb.T @ Nb
+            G[np.diag_indices(k)] += prior_diag[:, ch] + RIDGE * np.trace(G) / k
+            new[:, ch] = np.linalg.solve(G, Bw.T @ (swT[ch] * yT[ch]))
         change = np.abs(new - psi).max() / max(np.abs(new).max(), 1e-30)
         psi = new
         if change < tol:

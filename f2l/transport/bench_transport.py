@@ -86,10 +86,12 @@ def benchmark_transport(n_pixels: int = 10000, grid: LatLongGrid = LatLongGrid(6
                         repeats: int = 1) -> dict:
     """Time exact and adaptive visibility on the synthetic head; compare them.
 
-    Returns wall times (s, best of ``repeats``) and their process CPU seconds, rays and Mrays/s, bit disagreement of adaptive vs
-    exact (over all bits and over front-facing bits), the relative error of T @ l under
-    :func:`sunny_sky` (global Frobenius ratio and max / 99th percentile per pixel), the
-    fraction of front rays occluded, and memory of packed bits vs dense float32 T (MiB)."""
+    Returns wall times (s, best of ``repeats``) and their process CPU seconds, rays and
+    Mrays/s, bit disagreement of adaptive vs exact (over all bits and over front-facing bits),
+    the relative error of T @ l under :func:`sunny_sky` (global Frobenius ratio and max / 99th
+    percentile per pixel), the fraction of front rays occluded, memory of packed bits vs dense
+    float32 T (MiB), and the times of ``Transport.project`` (K = 25), ``dense`` and ``matmul``.
+    """
     vertices, faces = synthetic_head(subdivisions)
     points, normals = sample_pixels(vertices, faces, n_pixels, seed=seed)
     res: dict = {"n_pixels": n_pixels, "grid": list(grid.shape), "threads": threads,

@@ -42,7 +42,8 @@ class Transport:
     def __init__(self, vis_bits: np.ndarray, normals: np.ndarray, grid: LatLongGrid,
                  chunk_pixels: int = 1024, threads: int | None = 2,
                  clear_back_facing: bool = False) -> None:
-        vis_bits = np.array(vis_bits, dtype=np.uint8, order="C", copy=True if clear_back_facing else None)
+        copy = True if clear_back_facing else None  # never modify the caller's array
+        vis_bits = np.array(vis_bits, dtype=np.uint8, order="C", copy=copy)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         if vis_bits.ndim != 2 or vis_bits.shape[1] != packed_width(grid):
             raise ValueError(
@@ -136,8 +137,12 @@ class Transport:
         if bits.ndim == 1:  # a single integer row
             bits, normals = bits[None], normals[None]
         out = np.empty((len(bits), self.grid.size), dtype=dtype)
-        for s, e in self._chunks(len(bits)):
+
+        def work(chunk):
+            s, e = chunk
             out[s:e] = self._rows_of(bits[s:e], normals[s:e], dtype)
+
+        self._map(work, len(bits))
         return out
 
     # -- products -------------------------------------------------------------------------------
