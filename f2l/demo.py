@@ -19,7 +19,8 @@ def builtin_models() -> list[str]:
     return [name for name, info in discover().items() if info.ok and info.package == "f2l"]
 
 
-def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = None, echo=print) -> dict:
+def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = None, echo=print,
+             grid=None, image_size: int = 128) -> dict:
     from f2l.estimate.runner import run_estimates
     from f2l.metrics.evaluate import evaluate_estimates
     from f2l.synth.dataset import write_synthetic_shards
@@ -29,7 +30,9 @@ def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = N
     shards = out / "shards"
     est_dir = out / "estimates"
     echo(f"[1/4] synthesising {n} faces under known skies -> {shards}")
-    synth_summary = write_synthetic_shards(shards, n=n, seed=seed)
+    from f2l.lighting.grid import LatLongGrid
+
+    synth_summary = write_synthetic_shards(shards, n=n, seed=seed, grid=grid or LatLongGrid(), image_size=image_size)
     echo(json.dumps(synth_summary))
     echo(f"[2/4] estimating with {', '.join(models)} -> {est_dir}")
     est_summary = run_estimates([shards], models=models, out_dir=est_dir)

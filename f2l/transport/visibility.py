@@ -20,42 +20,51 @@ Methods
     One ray per pixel and front-facing texel (N * L / 2 rays; 41M for N = 10k, 64 x 128).
 
 ``"adaptive"`` (default)
-    Two-level casting. The grid is split into f x f-texel cells (``coarse_factor`` f = 4: a
+    Coarse-to-fine casting. The grid is split into f x f-texel cells (``coarse_factor`` f = 4: a
     16 x 32 cell grid at 64 x 128). Per pixel, each cell is *front* (all its texels
     front-facing), *back* (none: bits 0, no rays) or *horizon* (both), decided by a bound on the
     cell centre's cosine (``|<n, c>| > sin r_c``, r_c the largest centre-to-texel angle) and,
     where that is inconclusive, the exact per-texel test (the same ``<n, w> > 0`` as "exact").
 
     1. Cast one ray per front cell, through the cell centre.
-    2. Cast full-resolution rays for every front-facing texel of every horizon cell (grazing
-       rays near the pixel's horizon are 5x more often blocked than others on a face mesh).
-    3. Per cell, record whether its samples (the centre ray of a front cell, the texel rays of a
+    2. Horizon cells, by 2 x 2-texel sub-cells: one ray through the centre (normalised mean of
+       the texel directions) of each all-front sub-cell, one ray per front-facing texel of the
+       sub-cells that the horizon crosses (grazing rays are 5x more often blocked than others
+       on a face mesh: 10% vs 2% on the synthetic head).
+    3. Per cell, record whether its samples (the centre ray of a front cell, the rays of a
        horizon cell) include occluded and/or free rays. Dilate both flags over the 3 x 3 cell
        neighbourhood (wrapping in azimuth; across a pole, cell (0, c) neighbours
-       (0, c + Wc/2)). Front cells whose neighbourhood holds both occluded and free samples are
-       re-cast at full resolution (both sides of every shadow boundary); all other front cells
-       are filled with their centre ray's result (uniformly free, or uniformly occluded).
+       (0, c + Wc/2)). Cells whose neighbourhood holds both occluded and free samples are
+       re-cast at full resolution (both sides of every shadow boundary: all texels of a front
+       cell, the sampled sub-cells of a horizon cell); all other cells keep their samples'
+       values (a front cell is filled uniformly, free or occluded, from its centre ray).
 
     Failure mode: an occluder, or a gap in one, that lies within a single cell's interior and
     that no centre ray hits.
 
     Measured (``benchmark_transport``: synthetic head of 20,480 triangles, N = 10,000 pixels,
-    64 x 128 grid, 2 threads on the 2-core dev machine, best of 3 interleaved runs):
+    64 x 128 grid, 2 threads on the shared 2-core dev machine; best of 3 interleaved runs, with
+    the range seen over the session under varying background load):
 
-    ==========  ======  ===========  ====================================================
-    method      wall s  CPU s        rays
-    ==========  ======  ===========  ====================================================
-    exact       8.0     15.5         40.96M
-    adaptive    2.4     4.6          7.31M (2.36M centre, 3.16M horizon, 1.79M re-cast)
-    ==========  ======  ===========  ====================================================
+    ==========  ===============  =======  ======================================================
+    method      wall s           CPU s    rays
+    ==========  ===============  =======  ======================================================
+    exact       7.9 (7.9-9.2)    15.5     40.96M
+    adaptive    2.17 (2.2-2.7)   4.1      5.97M (2.36M centre, 1.58M horizon, 2.02M re-cast)
+    ==========  ===============  =======  ======================================================
 
-    (exact cost 5.7 s in notes/performance.md on a quieter machine; adaptive is 3.3x faster
-    in wall time, 5.6x fewer rays.) Error of adaptive vs exact: 3.4e-5 of the front-facing
-    bits differ (1.7e-5 of all bits; 2.3% of pixels have at least one differing bit); under a
-    sunny sky (``bench_transport.sunny_sky``: the sun texel carries 10x the sky's irradiance,
-    0.6% of pixels in its cast shadow, no sun bit differs) ``||T_a l - T_e l|| / ||T_e l||`` =
-    2.0e-6, largest per-pixel relative error 8.9e-4 (99th percentile 5.4e-6). On the flat
-    occluders of the tests (a square over a plane, a box beside a slab) the bits are identical.
+    i.e. 3.3-3.8x faster than exact, 6.9x fewer rays (the remaining rays are the expensive,
+    grazing or boundary ones; about a third of the adaptive time is numpy bookkeeping).
+    exact cost 5.7 s in notes/performance.md on a quieter machine.
+
+    Error of adaptive vs exact: 4.9e-5 of the front-facing bits differ (2.5e-5 of all bits;
+    4.0% of pixels have at least one differing bit; every differing texel is a missed grazing
+    occlusion within ~3 deg of the pixel's horizon, median 1 deg, so it barely weighs in T).
+    Under a sunny sky (``bench_transport.sunny_sky``: the sun texel carries 10x the sky's
+    irradiance, 0.6% of pixels in its cast shadow, no sun bit differs)
+    ``||T_a l - T_e l|| / ||T_e l||`` = 2.1e-6, largest per-pixel relative error 9.3e-4
+    (99th percentile 9.2e-6). On the flat occluders of the tests (a square over a
+    plane, a box beside a slab) the bits are identical.
 """
 
 from __future__ import annotations
