@@ -282,3 +282,4 @@ def test_lowrank_is_near_optimal(random_transport):
     assert np.array_equal(u, u2)  # seeded
     uc, vtc = t.lowrank(k, seed=0, max_dense_bytes=0)  # chunked randomized SVD
     assert np.linalg.norm(dense - uc @ vtc) <= 1.1 * optimal
+

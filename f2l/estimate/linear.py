@@ -74,19 +74,19 @@ def prior_diag_for(model, theta: np.ndarray, rho: np.ndarray, weight: float) -> 
 
 def solve_albedo(model, psi: np.ndarray, rho0: np.ndarray, light_w: float, albedo_w: float, albedo_nll) -> np.ndarray:
     """min_rho light_w * prior_nll(psi / rho) + albedo_w * albedo_nll(rho), rho in (0, 1)^3."""
+    from scipy.optimize import minimize
+
     psi_t = torch.as_tensor(psi, dtype=torch.float64)
     r0 = np.clip(rho0, 1e-3, 1 - 1e-3)
-    x = torch.tensor(np.log(r0) - np.log1p(-r0), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.LBFGS([x], lr=1.0, max_iter=30, tolerance_grad=1e-10, tolerance_change=1e-12,
-                            line_search_fn="strong_wolfe")
 
-    def closure():
-        opt.zero_grad()
+    def fun(x_np: np.ndarray):
+        x = torch.tensor(x_np, dtype=torch.float64, requires_grad=True)
         rho = torch.sigmoid(x)
         theta = (psi_t / rho[None, :]).reshape(1, -1)
         loss = light_w * model.prior_nll(theta)[0] + albedo_w * albedo_nll(rho[None])[0]
         loss.backward()
-        return loss
+        return loss.item(), x.grad.numpy().copy()
 
-    opt.step(closure)
-    return torch.sigmoid(x).detach().numpy()
+    res = minimize(fun, np.log(r0) - np.log1p(-r0), jac=True, method="L-BFGS-B",
+                   options={"maxiter": 50, "gtol": 1e-7})
+    return 1.0 / (1.0 + np.exp(-res.x))
