@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.io.atomic import write_text_atomic
 from f2l.lighting.grid import LatLongGrid
 
 
@@ -107,8 +108,8 @@ def run_bench(
     lines.append(f"peak memory (RSS): {_peak_rss_mb():.0f} MiB")
     markdown = "\n".join(lines)
     table_md = out_dir / "bench.md"
-    table_md.write_text(markdown + "\n")
-    (out_dir / "bench.json").write_text(json.dumps({"transport": transport_rows, "models": summary}, indent=2))
+    write_text_atomic(table_md, markdown + "\n")
+    write_text_atomic(out_dir / "bench.json", json.dumps({"transport": transport_rows, "models": summary}, indent=2))
     plot_png = out_dir / "error_vs_runtime.png"
     _plot(summary, plot_png)
     return {"markdown": markdown, "table_md": str(table_md), "plot_png": str(plot_png), "summary": summary, "transport": transport_rows}

@@ -16,7 +16,6 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 
 from f2l import __version__
 from f2l.estimate.estimator import EstimationError, EstimatorConfig, FaceObservation, estimate
@@ -229,9 +228,9 @@ def _bad_row(bad, model: str) -> dict:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    from f2l.io.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=True))
 
 
 class _NoBar:

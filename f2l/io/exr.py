@@ -10,11 +10,13 @@ attributes. Any unreadable, corrupt, truncated or missing file raises ``ExrError
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
 import OpenEXR
+
+from f2l.io.atomic import atomic_path
 
 __all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata", "NEGATIVE_TOLERANCE"]
 
@@ -71,18 +73,8 @@ def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict[str, st
         header[key] = value
     channels = {name: np.ascontiguousarray(img[:, :, i]) for i, name in enumerate("RGB")}
 
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         OpenEXR.File(header, channels).write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def read_exr_with_metadata(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, str]]:

@@ -9,11 +9,13 @@ encoded with the sRGB transfer function (colour-science) and rounded to uint8.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
 from PIL import Image, ImageDraw, ImageFont
+
+from f2l.io.atomic import atomic_path
 
 __all__ = ["REC709_LUMA", "auto_exposure_scale", "tonemap", "probe_preview", "save_png", "contact_sheet"]
 
@@ -97,18 +99,8 @@ def save_png(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write a uint8 image as PNG atomically (temp file in the same directory + os.replace)."""
     path = Path(path)
     img = _check_uint8_image(image, str(path))
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(np.ascontiguousarray(img)).save(fh, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(img)).save(tmp, format="PNG")
 
 
 def _font() -> ImageFont.ImageFont | ImageFont.FreeTypeFont:

@@ -15,6 +15,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from f2l.estimate.runner import ESTIMATES_FILE, RUN_FILE
+from f2l.io.atomic import atomic_path, write_text_atomic
 
 
 def ground_truth_index(shards: list[Path]) -> dict[str, dict]:
@@ -76,9 +77,7 @@ def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) ->
     _write_rows_csv(rows, per_face_csv, ["model", "face_id", *METRIC_NAMES, "runtime_s"])
     to_csv(summary, summary_csv)
     markdown = to_markdown(summary)
-    tmp = summary_md.with_name(summary_md.name + ".tmp")
-    tmp.write_text(markdown + "\n")
-    tmp.replace(summary_md)
+    write_text_atomic(summary_md, markdown + "\n")
     return {
         "rows": rows, "summary": summary, "summary_rows": summary if isinstance(summary, list) else None,
         "markdown": markdown, "per_face_csv": str(per_face_csv), "summary_csv": str(summary_csv),
@@ -89,10 +88,8 @@ def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) ->
 def _write_rows_csv(rows: list[dict], path: Path, columns: list[str]) -> None:
     import csv
 
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         for r in rows:
             writer.writerow(r)
-    tmp.replace(path)
