@@ -148,3 +148,16 @@ def test_unknown_model_exits_nonzero_with_message(small_shards, tmp_path):
     proc = subprocess.run(f2l_cmd("estimate", str(small_shards), "--model", "nope", "--out", str(tmp_path / "e")),
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "unknown lighting model 'nope'" in proc.stderr
+
+
+def test_process_pool_matches_serial(small_shards, tmp_path):
+    from f2l.estimate.runner import run_estimates
+
+    serial = run_estimates([small_shards], ["sh9"], tmp_path / "serial", workers=1, threads=1, progress=False)
+    pooled = run_estimates([small_shards], ["sh9"], tmp_path / "pooled", workers=2, threads=1, progress=False)
+    assert serial["ok"] == pooled["ok"] == 4
+    a = {r["face_id"]: r for r in pq.read_table(tmp_path / "serial" / "estimates.parquet").to_pylist()}
+    b = {r["face_id"]: r for r in pq.read_table(tmp_path / "pooled" / "estimates.parquet").to_pylist()}
+    assert a.keys() == b.keys()
+    for fid in a:
+        np.testing.assert_allclose(a[fid]["params"], b[fid]["params"], rtol=1e-9, atol=1e-12)

@@ -190,7 +190,12 @@ def run_estimates(
                     else:
                         handle(estimate_record(rec, name, str(out_dir), cfg))
         else:
-            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(threads,)) as pool:
+            import multiprocessing
+
+            # spawn, not fork: forking a process whose torch/OpenMP threads are running can deadlock
+            context = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(threads,),
+                                     mp_context=context) as pool:
                 pending: set[Future] = set()
                 for rec in records():
                     for name in models:
