@@ -81,7 +81,6 @@ from f2l.lighting.grid import LatLongGrid
 __all__ = ["compute_visibility", "visibility_stats", "packed_width", "unpack_bits", "front_cosines"]
 
 _MAX_RAYS_PER_CALL = 1 << 20
-_MIN_COHERENT_PIXELS = 64  # fewer pixels: plain adaptive for all
 
 
 def packed_width(grid: LatLongGrid) -> int:
@@ -130,8 +129,7 @@ class _Scene:
 
 @dataclass
 class _Stats:
-    rays: dict = field(default_factory=lambda: {"coarse": 0, "horizon": 0, "refine": 0, "exact": 0,
-                                                "pixel": 0})
+    rays: dict = field(default_factory=lambda: {"coarse": 0, "horizon": 0, "refine": 0, "exact": 0})
     cells: dict = field(
         default_factory=lambda: {"front": 0, "horizon": 0, "refined": 0, "front_texels": 0})
     lock: Lock = field(default_factory=Lock)
@@ -350,90 +348,6 @@ def _adaptive_chunk(scene: _Scene, origins, normals, grid: LatLongGrid, dirs32, 
     return np.packbits(bits, axis=1, bitorder="little")
 
 
-# -- pixel-space coherence ----------------------------------------------------------------------
-def _dilate_texels(u: np.ndarray, grid: LatLongGrid) -> np.ndarray:
-    """3 x 3 dilation of (m, L) bool texel flags on the sphere (as _dilate3x3, on texels)."""
-    return _dilate3x3(u.reshape(-1, grid.height, grid.width)).reshape(len(u), -1)
-
-
-def _anchors(points: np.ndarray, normals: np.ndarray, spacing: float, k: int, min_dot: float):
-    """Anchor pixels and, for every other pixel, its k nearest similar anchors.
-
-    The pixel pitch is the median nearest-neighbour distance; anchors are the first pixel (in
-    index order) of each cube of side ``spacing`` x pitch (deterministic). A pixel's neighbours
-    are its nearest anchors within 2 x spacing x pitch whose normal is within acos(min_dot) of
-    its own (up to k; fewer are padded by repeating the nearest). Returns (anchor mask (N,),
-    rest (M,) pixel indices, nn (M, k) indices into the voxel anchors, voxel-anchor mask);
-    pixels with fewer than min(2, k) such anchors become anchors too (absent from rest).
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(points)
-    d, _ = cKDTree(points).query(points, k=2)
-    pitch = float(np.median(d[:, 1]))
-    anchor = np.zeros(n, dtype=bool)
-    if not np.isfinite(pitch) or pitch <= 0.0:
-        anchor[:] = True
-        return anchor, np.zeros(0, np.int64), np.zeros((0, k), np.int64), anchor.copy()
-    h = spacing * pitch
-    key = np.floor((points - points.min(axis=0)) / h).astype(np.int64)
-    _, first = np.unique(key, axis=0, return_index=True)
-    anchor[first] = True
-    voxel_anchor = anchor.copy()
-    aidx = np.flatnonzero(anchor)
-    rest = np.flatnonzero(~anchor)
-    kc = min(3 * k, len(aidx))
-    dist, nn = cKDTree(points[aidx]).query(points[rest], k=kc, distance_upper_bound=2.0 * h)
-    dist = dist.reshape(len(rest), kc)
-    nn = nn.reshape(len(rest), kc)
-    ok = np.isfinite(dist)
-    nn_safe = np.where(ok, nn, 0)
-    ok &= np.einsum("mkc,mc->mk", normals[aidx][nn_safe], normals[rest]) >= min_dot
-    order = np.argsort(~ok, axis=1, kind="stable")[:, :k]  # valid first, nearest first
-    nn = np.take_along_axis(nn_safe, order, axis=1)
-    valid = np.take_along_axis(ok, order, axis=1)
-    nn = np.where(valid, nn, nn[:, :1])
-    lonely = valid.sum(axis=1) < min(2, k)
-    anchor[rest[lonely]] = True
-    return anchor, rest[~lonely], nn[~lonely], voxel_anchor
-
-
-def _coherent_chunk(scene: _Scene, origins, normals, grid: LatLongGrid, dirs32,
-                    anchor_bits: np.ndarray, anchor_front: np.ndarray, nn: np.ndarray,
-                    sin_near: float, stats: _Stats):
-    """Visibility of pixels from their k nearest anchors' packed bits / front masks (nn (m, k)).
-
-    A front-facing texel takes the anchors' common value where every anchor that faces it
-    agrees (all visible or all occluded) and either all anchors face it or the texel is more
-    than asin(sin_near) above the pixel's horizon; the rest (plus the 3 x 3 texel dilation of
-    the disagreements) is ray cast.
-    """
-    m = len(origins)
-    L = grid.size
-    cos = front_cosines(normals, grid).reshape(m, L)
-    fp = np.packbits(cos > 0.0, axis=1, bitorder="little")
-    high = np.packbits(cos > sin_near, axis=1, bitorder="little")
-    ab = anchor_bits[nn]  # (m, k, P)
-    af = anchor_front[nn]
-    all_vis = np.bitwise_and.reduce(ab | ~af, axis=1)  # every facing anchor sees it
-    any_vis = np.bitwise_or.reduce(ab, axis=1)
-    all_f = np.bitwise_and.reduce(af, axis=1)
-    any_f = np.bitwise_or.reduce(af, axis=1)
-    disagree = fp & any_f & all_vis.__invert__() & any_vis  # some facing anchors see it, some not
-    unknown = fp & ~(all_f | (any_f & high))
-    u = np.unpackbits(disagree, axis=1, count=L, bitorder="little").view(bool)
-    u = _dilate_texels(u, grid)
-    u |= np.unpackbits(unknown, axis=1, count=L, bitorder="little").view(bool)
-    u &= np.unpackbits(fp, axis=1, count=L, bitorder="little").view(bool)
-    bits = np.unpackbits(fp & any_f & all_vis, axis=1, count=L, bitorder="little").view(bool)
-    pix, tex = np.nonzero(u)
-    occ = scene.occluded(_repeat_rows(origins, pix), _take_rows(dirs32, tex))
-    bits[pix, tex] = ~occ
-    stats.add("rays", pixel=len(occ))
-    stats.add("cells", front_texels=int(np.count_nonzero(cos > 0.0)))
-    return np.packbits(bits, axis=1, bitorder="little")
-
-
 # -- public API ---------------------------------------------------------------------------------
 def _prepare(vertices, faces, points, normals, offset):
     vertices = np.asarray(vertices, dtype=np.float64)
@@ -460,9 +374,7 @@ def _prepare(vertices, faces, points, normals, offset):
 def visibility_stats(vertices, faces, points, normals, grid: LatLongGrid = LatLongGrid(),
                      method: str = "adaptive", threads: int | None = 2,
                      offset: float | None = None, coarse_factor: int = 4,
-                     chunk_pixels: int | None = None, anchor_spacing: float | None = 2.0,
-                     anchor_k: int = 4, sin_near: float = 0.1,
-                     anchor_min_dot: float = 0.95) -> tuple[np.ndarray, dict]:
+                     chunk_pixels: int | None = None) -> tuple[np.ndarray, dict]:
     """Like :func:`compute_visibility`, also returning counts: rays cast per stage, cells per
     class (adaptive), ``total_rays`` and ``exact_rays`` (what the exact method would cast)."""
     if method not in ("adaptive", "exact"):
@@ -485,54 +397,27 @@ def visibility_stats(vertices, faces, points, normals, grid: LatLongGrid = LatLo
         chunk_pixels = 256 if cells is None else 512
     threads = max(1, int(threads or os.cpu_count() or 1))
 
-    def run(fn, m: int) -> None:
-        starts = range(0, m, chunk_pixels)
-        if threads == 1 or m <= chunk_pixels:
-            for s in starts:
-                fn(s, min(m, s + chunk_pixels))
-        else:
-            with ThreadPoolExecutor(max_workers=threads) as pool:
-                list(pool.map(lambda s: fn(s, min(m, s + chunk_pixels)), starts))
-
-    coherent = (cells is not None and anchor_spacing is not None and anchor_spacing > 0
-                and n >= _MIN_COHERENT_PIXELS)
-    anchors = np.arange(n)
-    rest = nn = None
-    if coherent:
-        k = max(1, int(anchor_k))
-        is_anchor, rest, nn, voxel_anchor = _anchors(origins.astype(np.float64), normals,
-                                                     float(anchor_spacing), k, float(anchor_min_dot))
-        anchors = np.flatnonzero(is_anchor)
-
-    def work(s: int, e: int) -> None:
-        idx = anchors[s:e]
+    def work(s: int) -> None:
+        e = min(n, s + chunk_pixels)
         if cells is None:
-            out[idx] = _exact_chunk(scene, origins[idx], normals[idx], grid, dirs32, stats)
+            out[s:e] = _exact_chunk(scene, origins[s:e], normals[s:e], grid, dirs32, stats)
         else:
-            out[idx] = _adaptive_chunk(scene, origins[idx], normals[idx], grid, dirs32, cells,
+            out[s:e] = _adaptive_chunk(scene, origins[s:e], normals[s:e], grid, dirs32, cells,
                                        stats)
 
-    run(work, len(anchors))
-    if coherent and len(rest):
-        vidx = np.flatnonzero(voxel_anchor)
-        anchor_bits = out[vidx]
-        anchor_front = np.packbits(front_cosines(normals[vidx], grid).reshape(len(vidx), -1)
-                                   > 0.0, axis=1, bitorder="little")
-
-        def work_rest(s: int, e: int) -> None:
-            idx = rest[s:e]
-            out[idx] = _coherent_chunk(scene, origins[idx], normals[idx], grid, dirs32,
-                                       anchor_bits, anchor_front, nn[s:e], float(sin_near),
-                                       stats)
-
-        run(work_rest, len(rest))
+    starts = range(0, n, chunk_pixels)
+    if threads == 1 or n <= chunk_pixels:
+        for s in starts:
+            work(s)
+    else:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            list(pool.map(work, starts))
     info = {
         "rays": dict(stats.rays),
         "cells": dict(stats.cells),
         "total_rays": int(sum(stats.rays.values())),
         "exact_rays": stats.cells["front_texels"],
         "coarse_factor": f,
-        "anchors": int(len(anchors)),
     }
     return out, info
 
