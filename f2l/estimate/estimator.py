@@ -368,7 +368,8 @@ def _estimate_linear(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_start
         total_iters += its
         converged = its < cfg.irls_iters[round_]
         if cfg.fixed_albedo is None and round_ == 0:
-            rho = linear.solve_albedo(model, psi, rho, cfg.light_prior_weight, cfg.albedo_prior_weight, _albedo_prior_nll)
+            rho = linear.solve_albedo(model, psi, rho, cfg.light_prior_weight, cfg.albedo_prior_weight,
+                                      _albedo_prior_nll, _albedo_gmm_terms())
     theta = (psi / rho[None, :]).reshape(-1)
     dtype = prob.dtype
     with torch.no_grad():

@@ -63,6 +63,19 @@ class _SphericalHarmonics(LightingModel):
             nll = nll + 0.5 * (band / (SIGMA_BAND[l] * dc[:, None, None])).pow(2).sum((1, 2))
         return nll
 
+    def prior_nll_numpy(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """prior_nll and its gradient for one parameter vector, in closed form (numpy)."""
+        coeffs = np.asarray(theta, dtype=np.float64).reshape(self.num_coeffs, 3)
+        mean_dc = coeffs[0].mean()
+        dc = abs(mean_dc) + 1e-9
+        inv_var = np.zeros(self.num_coeffs)
+        for l in range(1, self.order + 1):
+            inv_var[l * l : (l + 1) * (l + 1)] = 1.0 / SIGMA_BAND[l] ** 2
+        raw = 0.5 * float((inv_var[:, None] * coeffs**2).sum())
+        grad = inv_var[:, None] * coeffs / dc**2
+        grad[0] = -2.0 * raw / dc**3 * np.sign(mean_dc) / 3.0
+        return raw / dc**2, grad.reshape(-1)
+
     def prior_precision(self, theta: np.ndarray) -> np.ndarray:
         """Diagonal of prior_nll's Hessian in theta (K, 3) with the DC scale held fixed (IRLS)."""
         coeffs = np.asarray(theta, dtype=np.float64).reshape(self.num_coeffs, 3)
