@@ -23,13 +23,19 @@ def _sh_probe(grid, order, seed):
     return coeffs, probe
 
 
+def _noise_free_observation(face, grid, probe, albedo):
+    """Exact shading albedo * (T l) of ``face`` under ``probe``; returns (T, shading, observation)."""
+    T = Transport(face.visibility_bits, face.normals.astype(np.float64), grid)
+    shading = albedo * T.matmul(probe.reshape(-1, 3).astype(np.float64))
+    obs = FaceObservation(face.normals, shading, np.ones(len(shading), bool), face.visibility_bits, grid)
+    return T, shading, obs
+
+
 def test_sh9_recovers_sh9_probe_from_noise_free_face(face_geometry, small_grid):
     face = face_geometry
     coeffs, probe = _sh_probe(small_grid, 2, seed=1)
     albedo = np.array([0.45, 0.3, 0.25])
-    T = Transport(face.visibility_bits, face.normals.astype(np.float64), small_grid)
-    shading = albedo * T.matmul(probe.reshape(-1, 3).astype(np.float64))
-    obs = FaceObservation(face.normals, shading, np.ones(len(shading), bool), face.visibility_bits, small_grid)
+    _, _, obs = _noise_free_observation(face, small_grid, probe, albedo)
     model = load_model("sh9", small_grid)
     res = estimate(obs, model, EstimatorConfig(fixed_albedo=tuple(albedo), light_prior_weight=0.0))
     est = res.params.reshape(-1, 3)
@@ -45,9 +51,7 @@ def test_sh9_albedo_light_split_keeps_shading(face_geometry, small_grid):
     face = face_geometry
     _, probe = _sh_probe(small_grid, 2, seed=2)
     albedo = np.array([0.5, 0.28, 0.2])
-    T = Transport(face.visibility_bits, face.normals.astype(np.float64), small_grid)
-    shading = albedo * T.matmul(probe.reshape(-1, 3).astype(np.float64))
-    obs = FaceObservation(face.normals, shading, np.ones(len(shading), bool), face.visibility_bits, small_grid)
+    T, shading, obs = _noise_free_observation(face, small_grid, probe, albedo)
     res = estimate(obs, load_model("sh9", small_grid))
     pred = res.albedo * T.matmul(res.probe.reshape(-1, 3).astype(np.float64))
     assert np.abs(pred - shading).mean() / shading.mean() < 0.01

@@ -28,12 +28,20 @@ def test_builtin_models_register_through_entry_points():
 def test_example_plugin_discovered_and_broken_plugin_reported(tmp_path):
     make_dist(tmp_path, "f2l-example-directional", {"directional": "f2l_example_directional:DirectionalAmbient"})
     make_dist(tmp_path, "broken-plugin", {"broken": "no_such_module_xyz:Model"})
+    (tmp_path / "half_plugin.py").write_text(
+        "from f2l.models.base import LightingModel\n"
+        "class Half(LightingModel):\n"
+        "    name = 'half'\n"
+        "    param_names = ['a']\n"
+    )
+    make_dist(tmp_path, "half-plugin", {"half": "half_plugin:Half"})
     proc = subprocess.run(f2l_cmd("models", "--json"), env=plugin_env(tmp_path), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     rows = {r["name"]: r for r in json.loads(proc.stdout)}
     assert rows["directional"]["ok"] and rows["directional"]["params"] == 8
     assert rows["directional"]["package"] == "f2l-example-directional"
     assert not rows["broken"]["ok"] and "no_such_module_xyz" in rows["broken"]["error"]
+    assert not rows["half"]["ok"] and "does not implement initial_points, radiance" in rows["half"]["error"]
     assert rows["sh9"]["ok"] and rows["sh25"]["ok"]  # the others keep working
 
 

@@ -145,7 +145,8 @@ def run_estimates(
     config: EstimatorConfig | None = None,
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict."""
-    from f2l.io.shards import BadRecord, ParquetAppender, count_records, iter_records
+    from f2l.io.shards import BadRecord, count_records, iter_records
+    from f2l.io.tables import ParquetAppender
     from f2l.models.registry import load_model
     from f2l.lighting.grid import LatLongGrid
 

@@ -22,6 +22,7 @@ Contract
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import ClassVar
 
 import numpy as np
@@ -30,8 +31,12 @@ import torch
 from f2l.lighting.grid import LatLongGrid
 
 
-class LightingModel:
-    """Base class for lighting models; subclass and register under ``f2l.lighting_models``."""
+class LightingModel(ABC):
+    """Base class for lighting models; subclass and register under ``f2l.lighting_models``.
+
+    ``param_names``, ``initial_points`` and ``radiance`` are abstract: a subclass that leaves one
+    out cannot be instantiated, and the registry reports it by name with what is missing.
+    """
 
     name: ClassVar[str] = ""
     version: ClassVar[str] = "1"
@@ -43,8 +48,9 @@ class LightingModel:
 
     # -- layout ------------------------------------------------------------------------------
     @property
+    @abstractmethod
     def param_names(self) -> list[str]:
-        raise NotImplementedError
+        """Names of the P parameters, in vector order."""
 
     @property
     def num_params(self) -> int:
@@ -55,12 +61,14 @@ class LightingModel:
         p = self.num_params
         return np.full(p, -np.inf), np.full(p, np.inf)
 
+    @abstractmethod
     def initial_points(self) -> np.ndarray:
-        raise NotImplementedError
+        """(S, P) starting points of the multi-start optimiser (e.g. prior centroids)."""
 
     # -- evaluation ------------------------------------------------------------------------------
+    @abstractmethod
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """(B, P) parameters -> (B, L, 3) radiance on the flattened grid, differentiable."""
 
     def linear_basis(self) -> np.ndarray | None:
         return None

@@ -45,6 +45,9 @@ def discover() -> dict[str, ModelInfo]:
             obj = ep.load()
             if not (isinstance(obj, type) and issubclass(obj, LightingModel)):
                 raise TypeError(f"{ep.value} is not a subclass of f2l.models.base.LightingModel")
+            missing = sorted(getattr(obj, "__abstractmethods__", ()))
+            if missing:
+                raise TypeError(f"{ep.value} does not implement {', '.join(missing)}")
             info.cls = obj
         except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the others
             info.error = f"{type(exc).__name__}: {exc}"

@@ -25,16 +25,18 @@ def write_synthetic_shards(
     n: int = 12,
     seed: int = 0,
     grid: LatLongGrid = LatLongGrid(),
-    image_size: int = 128,
-    overcast_fraction: float = 0.25,
+    *,
     noise_sigma: float = 0.002,
-    specular: float = 0.0,
-    visibility_method: str = "adaptive",
-    threads: int = 2,
     progress: bool = True,
     records_per_shard: int = 64,
+    **render_options,
 ) -> dict:
-    """Render ``n`` faces into the shard directory ``out``; returns a summary dict."""
+    """Render ``n`` faces into the shard directory ``out``; returns a summary dict.
+
+    ``render_options`` go to :func:`f2l.synth.render.make_synthetic_set` (image_size,
+    overcast_fraction, specular, visibility_method, threads, albedo); the sensor noise defaults
+    to 0.002 here, as a photo has some.
+    """
     from f2l.io.shards import FaceRecord, ShardWriter, write_side_photo, write_side_probe
     from f2l.synth.render import make_synthetic_set
 
@@ -42,10 +44,7 @@ def write_synthetic_shards(
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     pixels = []
-    faces = make_synthetic_set(
-        n, grid, seed, image_size=image_size, overcast_fraction=overcast_fraction, specular=specular,
-        noise_sigma=noise_sigma, visibility_method=visibility_method, threads=threads,
-    )
+    faces = make_synthetic_set(n, grid, seed, noise_sigma=noise_sigma, **render_options)
     if progress:
         from tqdm import tqdm
 
