@@ -56,18 +56,18 @@ def solve_psi(
         rad = neg_basis @ psi  # (J, 3)
         mean_l = max(float((np.maximum(rad, 0) * neg_w[:, None]).sum() / 3), 1e-12)
         active = (rad < 0).astype(np.float64) * neg_w[:, None] * (neg_weight / (3 * mean_l**2))
-        new = np.empty_like(psi)
+        W = AT[None] * sw[:, None, :]  # (3, K, N) weighted rows, all channels in one batch
+        G = np.matmul(W, W.transpose(0, 2, 1)).astype(np.float64)  # (3, K, K)
+        rhs = np.matmul(W, (sw * -rT)[:, :, None])[:, :, 0].astype(np.float64)  # (3, K)
         for ch in range(3):
-            BwT = AT * sw[ch]
-            G = (BwT @ BwT.T).astype(np.float64)  # symmetric rank-k update (BLAS syrk)
-            grad = (BwT @ (sw[ch] * -rT[ch])).astype(np.float64)
             Q = np.diag(prior_diag[:, ch])
             if active[:, ch].any():
                 Nb = neg_basis * np.sqrt(active[:, ch])[:, None]
                 Q = Q + Nb.T @ Nb
-            G += Q
-            G[np.diag_indices(k)] += RIDGE * np.trace(G) / k
-            new[:, ch] = psi[:, ch] + np.linalg.solve(G, grad - Q @ psi[:, ch])
+            G[ch] += Q
+            G[ch][np.diag_indices(k)] += RIDGE * np.trace(G[ch]) / k
+            rhs[ch] -= Q @ psi[:, ch]
+        new = psi + np.linalg.solve(G, rhs[:, :, None])[:, :, 0].T
         change = np.abs(new - psi).max() / max(np.abs(new).max(), 1e-30)
         psi = new
         if change < tol:

@@ -253,7 +253,8 @@ def render_face(
     from f2l.transport import compute_visibility
 
     vis_all = compute_visibility(
-        vertices, faces, points, normals, grid, method=visibility_method, threads=threads
+        vertices, faces, points, normals, grid, method=visibility_method, threads=threads,
+        pixel_rc=np.stack(np.divmod(idx, image_size), axis=1),
     )
     l_flat = probe.reshape(-1, 3).astype(np.float64)
     shading = albedo[None, :] * _transport_matmul(vis_all, normals, grid, l_flat, threads)

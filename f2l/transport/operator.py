@@ -22,7 +22,7 @@ from threading import Lock
 import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
-from f2l.transport.visibility import compute_visibility, front_cosines, packed_width
+from f2l.transport.visibility import compute_visibility, front_cosines, front_mask, packed_width
 
 __all__ = ["Transport"]
 
@@ -80,7 +80,7 @@ class Transport:
 
     def _clear_back_facing(self) -> None:
         for s, e in self._chunks():
-            front = front_cosines(self.normals[s:e], self.grid).reshape(e - s, -1) > 0.0
+            front = front_mask(self.normals[s:e], self.grid)
             self.vis_bits[s:e] &= np.packbits(front, axis=1, bitorder="little")
 
     # -- sizes --------------------------------------------------------------------------------
