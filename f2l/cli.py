@@ -182,6 +182,107 @@ def demo(
     run_demo(out, n=n, seed=seed, models=model)
 
 
+def _progress(total: int, desc: str, enabled: bool):
+    """(callback(n), close()) over a tqdm bar on stderr, or no-ops when disabled."""
+    if not enabled:
+        return (lambda n=1: None), (lambda: None)
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="probe", file=sys.stderr)
+    return bar.update, bar.close
+
+
+def _load_model_or_fail(name: str, grid):
+    from f2l.models.registry import ModelNotFoundError, load_model
+
+    try:
+        return load_model(name, grid)
+    except ModelNotFoundError as exc:
+        _fail(str(exc.args[0]))
+
+
+def _fit_probe_inputs(probes: list[Path], model: str, grid: str, json_out: bool, what: str,
+                      out_dir: Optional[Path] = None):
+    """(model, fit records) for the EXRs found in ``probes``, with a progress bar."""
+    from f2l.estimate.prior_build import fit_probes, list_probes
+
+    paths = list_probes(probes)
+    if not paths:
+        _fail("no .exr probes found in " + ", ".join(map(str, probes)))
+    m = _load_model_or_fail(model, _grid(grid))
+    step, close = _progress(len(paths), f"{what} {model}", not json_out)
+    records = fit_probes(paths, m, progress=step, out_dir=out_dir)
+    close()
+    return m, records
+
+
+@app.command("fit-probe")
+def fit_probe_cmd(
+    probes: list[Path] = typer.Argument(..., help="Lat-long HDR probes (.exr) or folders of them."),
+    model: str = typer.Option(..., "--model", "-m", help="Lighting model name."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write fit_probe.csv and fitted probes here."),
+    grid: str = typer.Option("64x128", help="Model grid HxW (probes are resampled to it)."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Fit a lighting model directly to HDR probes (paper Table 1); report the sun angle where known."""
+    from f2l.estimate.prior_build import write_fit_report
+
+    m, records = _fit_probe_inputs(probes, model, grid, json_out, "fit-probe", out)
+    summary = write_fit_report(records, m, out)
+    if json_out:
+        typer.echo(json.dumps(summary))
+    else:
+        typer.echo(summary["markdown"])
+    if summary["ok"] == 0:
+        raise typer.Exit(code=1)
+
+
+@app.command("sky-corpus")
+def sky_corpus(
+    out: Path = typer.Option(..., "--out", help="Output folder for the sky EXRs (+ JSON side files)."),
+    n: int = typer.Option(400, "--n", help="Number of skies."),
+    seed: int = typer.Option(0, help="Seed."),
+    grid: str = typer.Option("64x128", help="Probe grid HxW."),
+    overcast_fraction: float = typer.Option(0.25, help="Fraction of overcast skies."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Write the project's default sky corpus (CIE clear + overcast skies) for `f2l build-prior`."""
+    from f2l.estimate.prior_build import write_sky_corpus
+
+    step, close = _progress(n, "sky-corpus", not json_out)
+    paths = write_sky_corpus(out, n, seed=seed, grid=_grid(grid), overcast_fraction=overcast_fraction, progress=step)
+    close()
+    typer.echo(json.dumps({"written": len(paths), "out": str(out)}))
+
+
+@app.command("build-prior")
+def build_prior_cmd(
+    probes: list[Path] = typer.Argument(..., help="Folders of lat-long sky EXRs (or files)."),
+    model: str = typer.Option(..., "--model", "-m", help="Lighting model name."),
+    out: Path = typer.Option(..., "--out", help="Prior JSON to write."),
+    components: int = typer.Option(6, help="GMM components."),
+    seed: int = typer.Option(0, help="Seed of the GMM fit."),
+    grid: str = typer.Option("64x128", help="Model grid HxW."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Fit the model to every probe, then a GMM over its prior features: the model's prior."""
+    from f2l.estimate.model_prior import save_prior
+    from f2l.estimate.prior_build import build_prior
+
+    m, records = _fit_probe_inputs(probes, model, grid, json_out, "build-prior")
+    bad = [r for r in records if r.status != "ok"]
+    for r in bad[:10]:
+        typer.echo(f"f2l: skipped {r.message}", err=True)
+    try:
+        prior = build_prior(m, records, n_components=components, seed=seed,
+                            corpus={"sources": [str(p) for p in probes]})
+    except ValueError as exc:
+        _fail(str(exc))
+    save_prior(prior, out)
+    typer.echo(json.dumps({"out": str(out), "fitted": len(records) - len(bad), "skipped": len(bad),
+                           "components": prior.num_components, "features": prior.features}))
+
+
 def main() -> None:
     try:
         app()
