@@ -363,10 +363,16 @@ def _estimate_linear(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_start
     small to share, and waking OpenBLAS's second thread for each of them cost more than the
     whole fit on 2 cores (0.16 s against 0.09 s for sh25, docs/performance.md).
     """
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _blas_controller().limit(limits=1, user_api="blas"):
         return _estimate_linear_fit(obs, model, cfg, prob, t_start)
+
+
+@lru_cache(maxsize=1)
+def _blas_controller():
+    """threadpoolctl's controller, found once (discovering the libraries costs ~5 ms a call)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _estimate_linear_fit(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_start: float) -> EstimateResult:
