@@ -46,7 +46,9 @@ class ProbeRecord:
 
 def write_sky_corpus(out_dir: str | Path, n: int, seed: int = 0, grid=None,
                      overcast_fraction: float = 0.25, progress: Callable | None = None) -> list[Path]:
-    """Write ``n`` random skies (module docstring) as ``sky_XXXX.exr`` + ``sky_XXXX.json``."""
+    """Write ``n`` random skies (module docstring) to ``out_dir``: ``sky_0000.exr``,
+    ``sky_0001.exr``, ... (index zero-padded to 4 digits), each with a ``.json`` side file holding
+    its kind, sun direction, turbidity, seed and index. Returns the EXR paths in order."""
     from f2l.io.exr import write_exr
     from f2l.lighting.grid import LatLongGrid
     from f2l.synth.skies import random_sky
