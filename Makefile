@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench prior clean
+.PHONY: setup demo test bench prior eval-sunsky clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,18 @@ prior: $(STAMP)
 	$(BIN)/f2l sky-corpus --out build/sky_corpus --n 200 --seed 0 --json
 	$(BIN)/f2l build-prior build/sky_corpus --model sunsky --components 6 --seed 0 \
 		--out plugins/f2l_builtin_models/data/sunsky_prior.json --json
+
+# Sun+Sky acceptance harness: median Sun-ang / Sun-dω MAE on 24 sunny faces (sun 10-70° high, all
+# azimuths, noisy 8-bit photos) and the sun energy share on 10 overcast faces, SH25 for reference.
+EVAL_SUNSKY := build/eval_sunsky
+eval-sunsky: $(STAMP)
+	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 \
+		--sun-elevation-deg 10:70
+	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --out $(EVAL_SUNSKY)/est_sunny
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --out $(EVAL_SUNSKY)/est_overcast
+	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny
+	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_overcast
 
 clean:
 	rm -rf $(VENV) demo_out

@@ -89,17 +89,31 @@ def synth(
     grid: str = typer.Option("64x128", help="Lighting grid HxW."),
     image_size: int = typer.Option(128, help="Photo size in pixels (square)."),
     overcast_fraction: float = typer.Option(0.25, help="Fraction of overcast skies."),
-    noise: float = typer.Option(0.002, help="Sensor noise sigma (linear units)."),
+    sun_elevation_deg: str = typer.Option(
+        "5:80", "--sun-elevation-deg", metavar="MIN:MAX",
+        help="Range of clear-sky sun elevations in degrees (uniform; azimuths cover the full circle). "
+             "Only the elevation draw is rescaled: pose, albedo and noise of a seed stay the same.",
+    ),
+    noise: float = typer.Option(
+        0.002, help="Sensor noise sigma (linear units), added before the photo is quantised to 8 bits; "
+                    "observed pixels are the decoded 8-bit codes.",
+    ),
     specular: float = typer.Option(0.0, help="Strength of an optional specular highlight."),
     visibility: str = typer.Option("adaptive", help="Visibility method: adaptive or exact."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Render synthetic faces under known probes into shards (ground truth included)."""
     from f2l.synth.dataset import write_synthetic_shards
+    from f2l.synth.skies import parse_elevation_range
 
+    try:
+        elevation_range = parse_elevation_range(sun_elevation_deg)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--sun-elevation-deg") from exc
     summary = write_synthetic_shards(
         out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
         noise_sigma=noise, specular=specular, visibility_method=visibility, progress=not json_out,
+        sun_elevation_range_deg=elevation_range,
     )
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
 
@@ -140,7 +154,8 @@ def evaluate(
     shards: Optional[list[Path]] = typer.Option(None, "--shards", help="Shards with ground truth (default: recorded)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
-    """The seven §5.1 metrics per face (CSV) and mean ± std per model (Markdown + CSV)."""
+    """The seven §5.1 metrics and sun energy shares per face (CSV); mean ± std, medians and the
+    overcast sun-share excess per model (Markdown + CSV)."""
     from f2l.metrics.evaluate import evaluate_estimates
 
     result = evaluate_estimates(estimates_dir, shards)

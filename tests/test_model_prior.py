@@ -359,7 +359,11 @@ def test_cli_build_prior_and_use_the_prior(cli_run, monkeypatch):
     params = torch.tensor(np.vstack([starts, starts[:1] * [1, 1, 1, 0, 0, 0, 1, 1, 1, 1]]), requires_grad=True)
     nll = model.prior_nll(params)
     assert nll.shape == (len(starts) + 1,) and torch.all(torch.isfinite(nll))
-    expected = prior.nll(model.prior_features(starts[:1]))[0]
+    # the model widens the file's components by a floor (sunsky_prior.FEATURE_MIN_STD)
+    widened = prior.widened(sunsky_prior.FEATURE_MIN_STD)
+    np.testing.assert_allclose(model.prior.covariances,
+                               prior.covariances + np.diag(np.square(sunsky_prior.FEATURE_MIN_STD))[None])
+    expected = widened.nll(model.prior_features(starts[:1]))[0]
     assert float(nll.detach()[0]) == pytest.approx(float(expected), rel=1e-9)
     nll.sum().backward()
     assert torch.all(torch.isfinite(params.grad))

@@ -75,6 +75,15 @@ class EstimatorConfig:
     # 2.8e-3 of the optimum, as close as 20 full iterations, in 11/20 of the time)
     irls_warm_iters: int = 14
     irls_warm_stride: int = 2
+    # sun models (``radiance_parts``): hybrid sky transport and the global sun search
+    sun_starts: int = 3  # search candidates refined by L-BFGS: distinct suns (>= 25 deg apart) + no sun
+    sun_core_texels: int = 48  # lobe texels with exact visibility (sky_transport.py)
+    sun_kappa_init: float = 6000.0
+    sun_max_pixels: int | None = 4096  # evenly spaced usable pixels for sun models
+    sun_all_starts_iters: int = 8  # L-BFGS iterations on every start, then the best one alone
+    # (elevation_rad, sigma_rad) from the photo's time and place (f2l.io.capture), or None
+    sun_elevation_prior: tuple[float, float] | None = None
+    sun_prior_weight: float = 1e-3
 
 
 @dataclass
@@ -144,6 +153,8 @@ class _Problem:
         idx = usable_pixels(obs)
         if cfg.max_pixels and idx.size > cfg.max_pixels:
             idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_pixels, replace=False))
+        if hasattr(model, "radiance_parts") and cfg.sun_max_pixels and idx.size > cfg.sun_max_pixels:
+            idx = idx[np.round(np.linspace(0, idx.size - 1, cfg.sun_max_pixels)).astype(np.int64)]
         self.idx = idx
         transport = Transport(obs.visibility_bits[idx], np.asarray(obs.normals, np.float64)[idx], self.grid)
         self.target = torch.as_tensor(np.asarray(obs.observed_rgb, np.float64)[idx], dtype=dtype)
@@ -157,10 +168,15 @@ class _Problem:
         self.e_sky = torch.as_tensor(upward, dtype=dtype)  # E_h = e_sky . l_sky
         sky_cols = np.zeros(L, dtype=bool)
         sky_cols[: self.L_sky] = True
-        if self.sky:
+        if self.sky and hasattr(model, "radiance_parts"):  # ground rows summed from their bits
+            ground_rows = grid.height - grid.sky_rows
+            g = transport.block_sums(ground_rows, (ground_rows, 4), first_row=grid.sky_rows).sum(1)
+            self.g = torch.as_tensor(g, dtype=dtype)
+        elif self.sky:
             self.g = torch.as_tensor(transport.row_sums(~sky_cols), dtype=dtype)  # T_gnd 1
         basis = model.linear_basis()
         self.linear = basis is not None
+        self.hybrid = None
         if self.linear:
             basis = np.asarray(basis, dtype=np.float64)
             if self.sky:
@@ -175,6 +191,11 @@ class _Problem:
             self.neg_basis = torch.as_tensor(basis[sel], dtype=dtype)
             self.neg_weights = torch.as_tensor(grid.solid_angles_flat[sel] / grid.solid_angles_flat[sel].sum(), dtype=dtype)
             self.TB = torch.as_tensor(transport.project(basis), dtype=dtype)  # (N, K)
+        elif self.sky and hasattr(model, "radiance_parts"):
+            from f2l.estimate.sky_transport import SkyTransport
+
+            self.hybrid = SkyTransport(transport, grid, core_texels=cfg.sun_core_texels)
+            self.transport = transport
         else:
             dense = torch.as_tensor(transport.dense(np.float32))
             if self.sky:
@@ -199,6 +220,13 @@ class _Problem:
                 e_h = torch.einsum("k,bkc->bc", self.eB, coeffs)
                 tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
             return tl, None
+        if self.hybrid is not None:
+            rad, sun = self.model.radiance_parts(params)
+            l_sky = rad[:, : self.L_sky]
+            tl = self.hybrid.apply(l_sky, sun)
+            e_h = torch.einsum("l,blc->bc", self.e_sky, l_sky)
+            tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
+            return tl, rad
         rad = self.model.radiance(params)
         if self.sky:
             l_sky = rad[:, : self.L_sky]
@@ -222,6 +250,10 @@ class _Problem:
         resid = pred - self.target[None]
         data = torch.sqrt(resid * resid + cfg.charbonnier_eps**2).mean((1, 2)) / self.target_scale
         total = data + cfg.light_prior_weight * self.model.prior_nll(params)
+        if cfg.sun_elevation_prior is not None and self.hybrid is not None:
+            el0, sigma = cfg.sun_elevation_prior
+            z = (params[:, self.model.sun_layout["elevation"]] - el0) / sigma
+            total = total + cfg.sun_prior_weight * 0.5 * z * z
         if cfg.fixed_albedo is None:
             total = total + cfg.albedo_prior_weight * _albedo_prior_nll(albedo)
         if cfg.negativity_weight > 0 and not self.sky:
@@ -236,6 +268,49 @@ class _Problem:
         return total, data
 
     # -- initial points ----------------------------------------------------------------------------------
+    def sun_search_starts(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
+        """(S, P) starts from the global sun search (sun_search.py) for a ``radiance_parts`` model."""
+        from f2l.estimate import sun_search
+        from f2l.lighting.grid import LatLongGrid as Grid
+
+        cfg, model, grid, layout = self.cfg, self.model, self.grid, self.model.sun_layout
+        el_range = None
+        if cfg.sun_elevation_prior is not None:
+            el0, sigma = cfg.sun_elevation_prior
+            half = max(3.0 * sigma, np.radians(4.0))
+            el_range = (el0 - half, el0 + half)
+        texels = sun_search.candidate_texels(grid, el_range)
+        d = grid.directions_flat[texels]
+        el, az = np.arcsin(np.clip(d[:, 1], -1, 1)), np.arctan2(d[:, 0], -d[:, 2])
+        shapes = model.search_shapes()
+        params = np.repeat(shapes[None], len(texels), axis=0)  # (k, S, P)
+        params[:, :, layout["elevation"]] = el[:, None]
+        params[:, :, layout["azimuth"]] = az[:, None]
+        br, bc = self.hybrid.block
+        coarse = type(model)(Grid(grid.height // br, grid.width // bc))
+        with torch.no_grad():  # the shapes have no sun: the model's sky alone when it has one
+            flat = torch.as_tensor(params.reshape(-1, params.shape[-1]))
+            sky_of = getattr(coarse, "sky", None) or coarse.radiance
+            sky = sky_of(flat)[:, : coarse.grid.sky_rows * coarse.grid.width].numpy()
+        k, S = params.shape[:2]
+        sky_blocks = sky.reshape(k, S, -1, 3)
+        e_blocks = np.bincount(self.hybrid.block_of, weights=self.e_sky.numpy(), minlength=sky_blocks.shape[2])
+        found = sun_search.search(self.hybrid.t_blk.numpy(), self.g.numpy(), self.transport.columns,
+                                  self.target.numpy(), grid, texels, sky_blocks, e_blocks, ground_albedo)
+        starts = []
+        sunny = sun_search.distinct(found[:-1], max(1, cfg.sun_starts - 1))
+        for c in sunny + found[-1:]:
+            p = shapes[c.shape].copy()
+            lum = max(float(c.psi_sky.mean()), float(c.psi_sun.mean()) * 1e-3, 1e-12)
+            p[list(layout["sky_rgb"])] = np.maximum(c.psi_sky / albedo, 1e-3 * lum)
+            p[list(layout["sun_rgb"])] = np.maximum(c.psi_sun / albedo, 1e-4 * lum)
+            p[layout["elevation"]] = np.clip(c.elevation_rad, 0.01, 0.5 * np.pi - 0.01)
+            p[layout["azimuth"]] = c.azimuth_rad
+            p[layout["kappa"]] = cfg.sun_kappa_init
+            starts.append(p)
+        self.search_candidates = found
+        return np.stack(starts)
+
     def least_squares_start(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
         """theta minimising ||rho ⊙ (T B theta) - s*||^2 (small ridge), for a linear model."""
         A = self.TB.numpy()
@@ -275,12 +350,22 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         for rho in albedo_starts:
             starts_theta.append(prob.least_squares_start(rho, cfg.ground_albedo_init))
             starts_rho.append(rho)
-    for theta in ([] if prob.linear else model.initial_points()):
+    t_search = time.perf_counter()
+    if prob.hybrid is not None:
+        initial = prob.sun_search_starts(albedo_starts[0], cfg.ground_albedo_init)
+        # the azimuth is periodic: optimise it unbounded (a sigmoid would pin suns behind the head)
+        lo, hi = lo.copy(), hi.copy()
+        lo[model.sun_layout["azimuth"]], hi[model.sun_layout["azimuth"]] = -np.inf, np.inf
+        box = BoxTransform(lo, hi)
+    else:
+        initial = [] if prob.linear else model.initial_points()
+    search_s = time.perf_counter() - t_search
+    for theta in initial:
         starts_theta.append(np.asarray(theta, dtype=np.float64))
         starts_rho.append(albedo_starts[0])
     theta0 = np.stack(starts_theta)
     rho0 = np.clip(np.stack(starts_rho), 1e-3, 1 - 1e-3)
-    if not prob.linear:
+    if not prob.linear and prob.hybrid is None:
         # scale non-linear starts so their mean shading matches the observation (cheap, one pass)
         with torch.no_grad():
             tl, _ = prob.light_transport(torch.as_tensor(theta0, dtype=dtype),
@@ -290,43 +375,42 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         scale = prob.target_scale / np.maximum(pred, 1e-12)
         theta0 = _scale_intensities(model, theta0, scale, lo, hi)
 
-    x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype, requires_grad=True)
-    x_rho = torch.tensor(np.log(rho0) - np.log1p(-rho0), dtype=dtype, requires_grad=True)
+    x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
+    x_rho = torch.tensor(np.log(rho0) - np.log1p(-rho0), dtype=dtype)
     g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
-    x_gnd = torch.tensor(np.full(len(theta0), np.log(g0) - np.log1p(-g0)), dtype=dtype, requires_grad=True)
-    variables = [x_theta, x_gnd] + ([x_rho] if cfg.fixed_albedo is None else [])
+    x_gnd = torch.tensor(np.full(len(theta0), np.log(g0) - np.log1p(-g0)), dtype=dtype)
     fixed_rho = None if cfg.fixed_albedo is None else torch.as_tensor(np.asarray(cfg.fixed_albedo, np.float64), dtype=dtype)
 
-    def unpack():
+    def unpack(x_theta, x_gnd, x_rho):
         params = box.to_params(x_theta)
-        rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(theta0), 3)
+        rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(x_theta), 3)
         return params, rho, torch.sigmoid(x_gnd)
 
-    optimiser = torch.optim.LBFGS(
-        variables, lr=1.0, max_iter=cfg.max_iter, tolerance_grad=1e-10, tolerance_change=cfg.tolerance,
-        history_size=20, line_search_fn="strong_wolfe",
-    )
-
-    def closure():
-        optimiser.zero_grad()
-        total, _ = prob.objective(*unpack())
-        loss = total.sum()
-        loss.backward()
-        return loss
-
     t_fit = time.perf_counter()
-    optimiser.step(closure)
-    state = optimiser.state[optimiser._params[0]]
-    iterations = int(state.get("n_iter", 0))
+    variables = (x_theta, x_gnd, x_rho)
+    iterations = 0
+    budget = cfg.max_iter
+    if prob.hybrid is not None and len(theta0) > 1 and 0 < cfg.sun_all_starts_iters < budget:
+        # every start for a few iterations, then only the best: batched L-BFGS shares one line
+        # search, so a poor start slows the good one down (and costs its share of each step)
+        variables, its = _lbfgs(prob, unpack, variables, cfg, cfg.sun_all_starts_iters)
+        iterations += its
+        budget -= its
+        with torch.no_grad():
+            total, _ = prob.objective(*unpack(*variables))
+        keep = int(np.nanargmin(total.numpy()))
+        variables = tuple(v[keep : keep + 1].clone() for v in variables)
+    variables, its = _lbfgs(prob, unpack, variables, cfg, budget)
+    iterations += its
     with torch.no_grad():
-        params, rho, rho_g = unpack()
+        params, rho, rho_g = unpack(*variables)
         total, data = prob.objective(params, rho, rho_g)
     fit_s = time.perf_counter() - t_fit
     totals = total.numpy()
     if not np.isfinite(totals).any():
         raise EstimationError("optimisation diverged: objective is not finite for any start")
     best = int(np.nanargmin(totals))
-    converged = iterations < cfg.max_iter
+    converged = its < budget
 
     best_params = params[best : best + 1]
     with torch.no_grad():
@@ -350,7 +434,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         runtime_s=runtime,
         probe=probe,
         sun_direction=model.sun_direction(best_np),
-        timings={"precompute_s": prob.precompute_s, "fit_s": fit_s, "total_s": runtime},
+        timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime},
         start_losses=[float(v) for v in totals],
         num_pixels_used=int(prob.idx.size),
     )
@@ -421,6 +505,33 @@ def _estimate_linear_fit(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_s
         timings={"precompute_s": prob.precompute_s, "fit_s": fit_s, "total_s": runtime},
         start_losses=[loss], num_pixels_used=int(prob.idx.size),
     )
+
+
+def _lbfgs(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, max_iter: int):
+    """Runs torch's L-BFGS (strong Wolfe) on the summed per-start objective; returns the
+    optimised leaf tensors and the iterations taken."""
+    leaves = [v.detach().clone().requires_grad_(True) for v in variables]
+    tolerance = cfg.tolerance
+    if prob.hybrid is not None:  # relative to the objective: ~1e-2 of data term at the start
+        with torch.no_grad():
+            start = prob.objective(*unpack(*leaves))[1].sum()
+        tolerance = cfg.tolerance * 1e-2 * float(start)
+    trained = leaves if cfg.fixed_albedo is None else leaves[:2]
+    optimiser = torch.optim.LBFGS(
+        trained, lr=1.0, max_iter=max_iter, tolerance_grad=1e-10, tolerance_change=tolerance,
+        history_size=20, line_search_fn="strong_wolfe",
+    )
+
+    def closure():
+        optimiser.zero_grad()
+        total, _ = prob.objective(*unpack(*leaves))
+        loss = total.sum()
+        loss.backward()
+        return loss
+
+    optimiser.step(closure)
+    state = optimiser.state[optimiser._params[0]]
+    return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))
 
 
 def _scale_intensities(model, theta0, scale, lo, hi):

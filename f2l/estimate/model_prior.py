@@ -70,6 +70,13 @@ class GmmPrior:
         maha = torch.einsum("bki,kij,bkj->bk", d, precisions, d)
         return -torch.logsumexp(log_norm[None] - 0.5 * maha, dim=1)
 
+    def widened(self, min_std: np.ndarray) -> "GmmPrior":
+        """A copy with each component's covariance + diag(min_std^2): a corpus that is narrower
+        than the world (e.g. synthetic skies) must not make the prior overrule the data."""
+        floor = np.diag(np.asarray(min_std, dtype=np.float64) ** 2)
+        return GmmPrior(self.weights, self.means, self.covariances + floor[None], self.features,
+                        model=self.model, corpus=self.corpus)
+
     def to_json(self) -> dict:
         return {"format": FORMAT, "model": self.model, "features": self.features,
                 "weights": self.weights.tolist(), "means": self.means.tolist(),

@@ -4,6 +4,12 @@ Reads ``estimates.parquet`` and ``run.json`` written by ``f2l estimate``, finds 
 ground-truth probe through its shard record (``gt_probe_path``; overcast flag and true sun
 direction from the record's metadata), and writes ``metrics_per_face.csv``, ``metrics_summary.csv``
 and ``metrics_summary.md`` (mean ± std per model with the mean run time per face).
+
+Per face, besides the metrics: ``gt_overcast`` (the record's sky kind, else
+:func:`~f2l.metrics.lighting.is_overcast` of the ground truth) and the sun energy share of the
+estimate and of the ground truth (:mod:`f2l.metrics.sun_share`). The summary adds the median
+Sun-dω MAE and Sun-ang and, per model, the overcast faces whose estimated sun share exceeds the
+ground truth's by more than 0.1.
 """
 
 from __future__ import annotations
@@ -46,7 +52,9 @@ def _overcast_and_sun(meta: dict):
 def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) -> dict:
     from f2l.io.exr import read_exr
     from f2l.lighting.grid import LatLongGrid
-    from f2l.metrics import METRIC_NAMES, evaluate_pair, summarise, to_csv, to_markdown
+    from f2l.metrics import METRIC_NAMES, evaluate_pair, summarise, summary_records, to_csv, to_markdown
+    from f2l.metrics.lighting import is_overcast
+    from f2l.metrics.sun_share import GT_OVERCAST, SUN_SHARE_EST, SUN_SHARE_GT, sun_shares
 
     estimates_dir = Path(estimates_dir)
     if shards is None:
@@ -65,24 +73,33 @@ def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) ->
         est_probe = read_exr(estimates_dir / est["probe_path"])
         gt_probe = read_exr(truth["probe"])
         overcast, gt_sun = _overcast_and_sun(truth["meta"])
+        if overcast is None:
+            overcast = bool(is_overcast(gt_probe, grid))
         est_sun = None if est.get("sun_direction") is None else np.asarray(est["sun_direction"])
         metrics = evaluate_pair(est_probe, gt_probe, grid, overcast=overcast, est_sun_dir=est_sun, gt_sun_dir=gt_sun)
-        rows.append({"model": est["model"], "face_id": est["face_id"], "runtime_s": est["runtime_s"], **metrics})
+        rows.append({"model": est["model"], "face_id": est["face_id"], "runtime_s": est["runtime_s"], **metrics,
+                     GT_OVERCAST: overcast, **sun_shares(est_probe, gt_probe, grid)})
     if not rows:
         raise SystemExit(f"{estimates_dir}: no successful estimate with a ground-truth probe to evaluate")
     summary = summarise(rows, by="model")
     per_face_csv = estimates_dir / "metrics_per_face.csv"
     summary_csv = estimates_dir / "metrics_summary.csv"
     summary_md = estimates_dir / "metrics_summary.md"
-    _write_rows_csv(rows, per_face_csv, ["model", "face_id", *METRIC_NAMES, "runtime_s"])
+    columns = ["model", "face_id", *METRIC_NAMES, "runtime_s", GT_OVERCAST, SUN_SHARE_EST, SUN_SHARE_GT]
+    _write_rows_csv(rows, per_face_csv, columns)
     to_csv(summary, summary_csv)
     markdown = to_markdown(summary)
     write_text_atomic(summary_md, markdown + "\n")
     return {
-        "rows": rows, "summary": summary, "summary_rows": summary if isinstance(summary, list) else None,
+        "rows": rows, "summary": summary, "summary_rows": [_json_ready(r) for r in summary_records(summary)],
         "markdown": markdown, "per_face_csv": str(per_face_csv), "summary_csv": str(summary_csv),
         "summary_md": str(summary_md),
     }
+
+
+def _json_ready(record: dict) -> dict:
+    """``record`` with non-finite floats as None (strict JSON has no NaN)."""
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in record.items()}
 
 
 def _write_rows_csv(rows: list[dict], path: Path, columns: list[str]) -> None:

@@ -16,10 +16,10 @@ flattened row-major (L, 3). Optional specular: normalised Blinn-Phong toward the
 k_s (m + 8) / (8 pi) <n, h>^m <n, w_sun> E_sun V_sun (one shadow ray), added untinted.
 
 Photo: linear image × exposure_scale (the 98th percentile of the face's linear values maps to
-0.85) + Gaussian noise, sRGB-encoded, clipped and rounded to 8 bits. Background pixels show a
-blurred probe along their ray. The record's observed linear RGB is the inverse sRGB of the 8-bit
-values (quantised and clipped like a real photo); gt_probe = probe × exposure_scale is in the same
-units.
+0.85) + Gaussian noise (added before quantisation), sRGB-encoded, clipped and rounded to 8 bits.
+Background pixels show a blurred probe along their ray. The record's observed linear RGB is the
+inverse sRGB of the 8-bit values (quantised and clipped like a real photo); gt_probe = probe ×
+exposure_scale is in the same units.
 """
 
 from __future__ import annotations
@@ -341,19 +341,28 @@ def make_synthetic_set(
     visibility_method: str = "adaptive",
     threads: int = 2,
     albedo=None,
+    sun_elevation_range_deg: tuple[float, float] | None = None,
 ) -> Iterator[SyntheticFace]:
     """Yield ``n`` synthetic faces, each under a :func:`~f2l.synth.skies.random_sky`.
 
     Face i uses ``np.random.default_rng(SeedSequence(seed).spawn(n)[i])`` (independent of n for
     the first faces), drawing the sky first, then pose, albedo (unless ``albedo`` fixes one for
-    every face) and noise; meta gains ``index`` and ``seed``.
+    every face) and noise; meta gains ``index`` and ``seed``. ``sun_elevation_range_deg``
+    (min, max) restricts the clear skies' sun elevation (None: the default [5, 80] deg); it
+    rescales one draw, so the random stream, and with the default range the output, is unchanged.
     """
-    from f2l.synth.skies import random_sky
+    from f2l.synth.skies import SUN_ELEVATION_RANGE_DEG, check_elevation_range, random_sky
+
+    elev_range = check_elevation_range(
+        SUN_ELEVATION_RANGE_DEG if sun_elevation_range_deg is None else sun_elevation_range_deg
+    )
 
     children = np.random.SeedSequence(int(seed)).spawn(int(n))
     for i, child in enumerate(children):
         rng = np.random.default_rng(child)
-        probe, info = random_sky(grid, rng, overcast_fraction=overcast_fraction)
+        probe, info = random_sky(
+            grid, rng, overcast_fraction=overcast_fraction, sun_elevation_range_deg=elev_range
+        )
         sun_dir = info.get("sun_direction")
         face = render_face(
             grid,

@@ -271,18 +271,46 @@ def overcast_sky(grid: LatLongGrid, brightness: float = 1.0, ground_albedo: floa
     return probe.astype(np.float32)
 
 
-def random_sky(grid: LatLongGrid, rng: np.random.Generator, overcast_fraction: float = 0.25):
+def parse_elevation_range(text: str) -> tuple[float, float]:
+    """``"MIN:MAX"`` (degrees) -> (min, max), checked by :func:`check_elevation_range`."""
+    parts = str(text).split(":")
+    if len(parts) != 2:
+        raise ValueError(f"sun elevation range must look like MIN:MAX in degrees, got {text!r}")
+    try:
+        lo, hi = (float(v) for v in parts)
+    except ValueError as exc:
+        raise ValueError(f"sun elevation range must look like MIN:MAX in degrees, got {text!r}") from exc
+    return check_elevation_range((lo, hi))
+
+
+def check_elevation_range(range_deg) -> tuple[float, float]:
+    """(min, max) sun elevation in degrees as floats; requires 0 <= min <= max <= 90."""
+    lo, hi = (float(v) for v in range_deg)
+    if not 0.0 <= lo <= hi <= 90.0:
+        raise ValueError(f"sun elevation range needs 0 <= MIN <= MAX <= 90 degrees, got {lo:g}:{hi:g}")
+    return lo, hi
+
+
+def random_sky(
+    grid: LatLongGrid,
+    rng: np.random.Generator,
+    overcast_fraction: float = 0.25,
+    sun_elevation_range_deg: tuple[float, float] = SUN_ELEVATION_RANGE_DEG,
+):
     """A random ground-truth probe and its description.
 
     Draws (always, in this order, so the stream is the same for both kinds): kind (overcast with
-    probability ``overcast_fraction``), sun elevation U[5, 80] deg, azimuth U[-180, 180) deg (the
-    full circle, behind the head included), turbidity U[2, 6], then the clear sky's jitter.
+    probability ``overcast_fraction``), sun elevation U[min, max] deg of
+    ``sun_elevation_range_deg`` (default [5, 80]; the range only rescales that one draw, so the
+    stream of random numbers is the same for every range), azimuth U[-180, 180) deg (the full
+    circle, behind the head included), turbidity U[2, 6], then the clear sky's jitter.
     Returns (probe float32 (H, W, 3), info) with info keys kind ('clear'/'overcast'),
     sun_direction (list of 3 floats; None if overcast), sun_elevation_deg, sun_azimuth_deg,
     turbidity (None if overcast), sun_kappa.
     """
+    elev_range = check_elevation_range(sun_elevation_range_deg)
     overcast = bool(rng.uniform() < overcast_fraction)
-    elev_deg = float(rng.uniform(*SUN_ELEVATION_RANGE_DEG))
+    elev_deg = float(rng.uniform(*elev_range))
     az_deg = float(rng.uniform(-180.0, 180.0))
     turbidity = float(rng.uniform(*TURBIDITY_RANGE))
     sub = np.random.default_rng(rng.integers(0, 2**63 - 1))
@@ -317,6 +345,9 @@ __all__ = [
     "clear_sky",
     "overcast_sky",
     "random_sky",
+    "parse_elevation_range",
+    "check_elevation_range",
+    "SUN_ELEVATION_RANGE_DEG",
     "sun_lobe_energy",
     "sun_rgb_irradiance",
     "horizontal_irradiance",

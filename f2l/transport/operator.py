@@ -258,6 +258,83 @@ class Transport:
         self._map(work)
         return res
 
+    # -- compact forms for the sky (f2l.estimate.sky_transport) -------------------------------
+    def block_sums(self, n_rows: int, block: tuple[int, int], dtype=np.float64, first_row: int = 0) -> np.ndarray:
+        """(N, n_rows/br * W/bc) sums of T over blocks of br x bc texels in the ``n_rows`` rows
+        from ``first_row`` (row-major over blocks): the transport onto a coarser lat-long grid,
+        integrated exactly from the fine bits. ``n_rows`` and W must be multiples of the block.
+
+        Texels of one row share the polar angle, so with the separable cosine a row's part of a
+        block is dOmega_r/pi (n_x sin(phi_r) S_sin + n_y cos(phi_r) S_1 - n_z sin(phi_r) S_cos),
+        S_f = sum of f(theta) over the visible texels. With bc = 4 the S_f of each half byte of
+        bits come from a 16-entry table per column group (one gather, no unpacking).
+        """
+        br, bc = (int(b) for b in block)
+        h, w = self.grid.shape
+        if n_rows % br or w % bc or first_row + n_rows > h or w % 8:
+            raise ValueError(f"{n_rows} rows x {w} columns do not split into {br}x{bc} blocks")
+        nb_r, nb_c = n_rows // br, w // bc
+        if bc != 4:
+            return self._block_sums_dense(first_row, n_rows, br, bc, dtype)
+        rows = slice(first_row, first_row + n_rows)
+        theta = self.grid.theta_rad.reshape(nb_c, 4)
+        nibbles = (np.arange(16)[:, None] >> np.arange(4)[None, :]) & 1  # (16, 4) bit i = column i
+        table = np.stack([nibbles @ np.sin(theta).T, nibbles @ np.ones((4, nb_c)), nibbles @ np.cos(theta).T],
+                         -1).transpose(1, 0, 2).reshape(nb_c * 16, 3)  # (group x nibble, 3)
+        table_t = np.ascontiguousarray(table.T, dtype=np.float32)
+        a = self.grid.row_solid_angles[rows] / np.pi
+        phi = self.grid.phi_rad[rows]
+        row_k = np.stack([np.sin(phi) * a, np.cos(phi) * a, -np.sin(phi) * a], -1)  # (rows, 3)
+        byte_cols = slice(first_row * w // 8, (first_row + n_rows) * w // 8)
+        group_base = (np.arange(nb_c) * 16).reshape(1, 1, nb_c)
+        out = np.empty((self.num_pixels, nb_r * nb_c), dtype=dtype)
+
+        def work(chunk):
+            s, e = chunk
+            m = e - s
+            b = self.vis_bits[s:e, byte_cols].reshape(m, n_rows, w // 8)
+            nib = np.stack([b & 15, b >> 4], -1).reshape(m, n_rows, nb_c)  # group 2j: low half
+            idx = nib.astype(np.int64) + group_base
+            coef = (self.normals[s:e, None, :] * row_k[None]).astype(np.float32)[:, :, None, :]
+            per_row = np.take(table_t[0], idx) * coef[..., 0]
+            per_row += np.take(table_t[1], idx) * coef[..., 1]
+            per_row += np.take(table_t[2], idx) * coef[..., 2]
+            blocks = per_row.reshape(m, nb_r, br, nb_c).sum(2, dtype=np.float64)
+            out[s:e] = np.maximum(blocks.reshape(m, -1), 0.0)
+
+        self._map(work)
+        return out
+
+    def _block_sums_dense(self, first_row: int, n_rows: int, br: int, bc: int, dtype) -> np.ndarray:
+        """:meth:`block_sums` for any block width, from unpacked bits (slower)."""
+        w = self.grid.width
+        nb_r, nb_c = n_rows // br, w // bc
+        out = np.empty((self.num_pixels, nb_r * nb_c), dtype=dtype)
+        texels = slice(first_row * w, (first_row + n_rows) * w)
+        weights = self._texel_weights[texels].astype(np.float32)
+
+        def work(chunk):
+            s, e = chunk
+            v = np.unpackbits(self.vis_bits[s:e, texels.start // 8: texels.stop // 8], axis=1, bitorder="little")
+            v = v.astype(np.float32)
+            acc = np.zeros((e - s, nb_r * nb_c), dtype=np.float64)
+            for k in range(3):
+                part = (v * weights[:, k]).reshape(e - s, nb_r, br, nb_c, bc).sum((2, 4))
+                acc += self.normals[s:e, k:k + 1] * part.reshape(e - s, -1)
+            out[s:e] = np.maximum(acc, 0.0)
+
+        self._map(work)
+        return out
+
+    def columns(self, texels: np.ndarray, dtype=np.float64, rows=None) -> np.ndarray:
+        """(N, k) exact columns T[:, texels] read from the packed bits (``texels`` flat indices;
+        ``rows``: only these pixels, as for :meth:`dense`)."""
+        texels = np.asarray(texels, dtype=np.int64).reshape(-1)
+        idx = self._row_index(rows)
+        bits = (self.vis_bits[idx][:, texels >> 3] >> (texels & 7).astype(np.uint8)) & 1
+        cos = self.normals[idx] @ self._texel_weights[texels].T  # <n, w> dOmega / pi
+        return (bits * np.maximum(cos, 0.0)).astype(dtype, copy=False)
+
     # -- low rank ---------------------------------------------------------------------------------
     def lowrank(self, k: int, seed: int = 0, niter: int = 2, oversample: int = 8,
                 max_dense_bytes: int = 1 << 30) -> tuple[np.ndarray, np.ndarray]:

@@ -126,12 +126,15 @@ class SunSky(LightingModel):
     @property
     def prior(self):
         """The GMM prior (:class:`f2l.estimate.model_prior.GmmPrior`) or None: $F2L_SUNSKY_PRIOR,
-        else the shipped ``data/sunsky_prior.json`` (rebuilt by ``make prior``)."""
+        else the shipped ``data/sunsky_prior.json`` (rebuilt by ``make prior``), each component
+        widened by ``sunsky_prior.FEATURE_MIN_STD`` (the synthetic corpus is narrower than real
+        skies: its overcast mode has a spread of 0.01 in every feature)."""
         if "prior" not in self._cache:
             from f2l.estimate.model_prior import load_prior
 
             path = Path(os.environ.get("F2L_SUNSKY_PRIOR", DEFAULT_PRIOR_PATH))
-            self._cache["prior"] = load_prior(path) if path.exists() else None
+            prior = load_prior(path) if path.exists() else None
+            self._cache["prior"] = None if prior is None else prior.widened(sunsky_prior.FEATURE_MIN_STD)
         return self._cache["prior"]
 
     def prior_features(self, params: np.ndarray) -> np.ndarray:
@@ -147,6 +150,16 @@ class SunSky(LightingModel):
     def probe_starts(self, probe_flat: np.ndarray) -> np.ndarray:
         """Starts for ``fit-probe``: the sun at the probe's brightest sky texel."""
         return sunsky_prior.probe_starts(self.grid, probe_flat)
+
+    # -- sun search (f2l.estimate.sun_search): which parameters are the sun's and the weights ----
+    sun_layout = {"sky_rgb": (0, 1, 2), "sun_rgb": (3, 4, 5), "elevation": 6, "azimuth": 7, "kappa": 9}
+    SEARCH_TURBIDITIES = (2.2, 4.5)  # the GMM's sunny and overcast modes (data/sunsky_prior.json)
+
+    def search_shapes(self) -> np.ndarray:
+        """(S, 10) sky shapes scored by the sun search: unit grey w_sky, no sun, each turbidity
+        of ``SEARCH_TURBIDITIES`` (the search sets the sun's angles and both weights)."""
+        return np.array([[1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.5, 0.0, t, 1024.0]
+                         for t in self.SEARCH_TURBIDITIES])
 
     def initial_points(self) -> np.ndarray:
         """GMM starts: the ``MAX_PRIOR_COMPONENTS`` heaviest component means at 4 azimuths
@@ -239,6 +252,12 @@ class SunSky(LightingModel):
 
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
         """(B, 10) -> (B, L, 3): sky * w_sky + integrated sun lobe * w_sun on the upper rows, 0 below."""
+        return self.radiance_parts(params)[0].to(params.dtype)
+
+    def radiance_parts(self, params: torch.Tensor) -> tuple[torch.Tensor, tuple]:
+        """:meth:`radiance` in float64 and its sun: (vals (B, K), flat (B, K), w_sun (B, 3)), the
+        lobe's texel means on its window (``sun_lobe_sparse``) and RGB weight, for transports
+        that treat the sun's texels exactly (``f2l.estimate.sky_transport``)."""
         p = self.clamp_params(params.to(torch.float64))
         rows = self.grid.sky_rows
         rgb, scale = self._sky(p, *self._consts(params.device))
@@ -247,4 +266,4 @@ class SunSky(LightingModel):
         upper = rgb * (p["w_sky"] * scale[:, None])[:, :, None]
         upper = upper.scatter_add_(2, flat[:, None, :].expand(-1, 3, -1), sun)
         out = torch.nn.functional.pad(upper.transpose(1, 2), (0, 0, 0, self.grid.size - upper.shape[2]))
-        return out.to(params.dtype)
+        return out, (vals, flat, p["w_sun"])

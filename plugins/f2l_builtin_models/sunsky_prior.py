@@ -27,6 +27,9 @@ import torch
 
 FEATURE_NAMES = ["sun_elevation_rad", "log_turbidity", "log_kappa", "log_sun_to_sky",
                  "sky_log_rg", "sky_log_bg", "sun_log_rg", "sun_log_bg"]
+# Floor on each feature's standard deviation in every GMM component (GmmPrior.widened):
+# elevation 6 deg, turbidity x1.3, kappa x1.6, sun-to-sky ratio x1.6, colours 10%.
+FEATURE_MIN_STD = (0.1, 0.25, 0.5, 0.5, 0.1, 0.1, 0.1, 0.1)
 REC709_LUMA = (0.2126, 0.7152, 0.0722)
 RATIO_FLOOR = 1e-3
 START_AZIMUTHS_RAD = (-0.75 * math.pi, -0.25 * math.pi, 0.25 * math.pi, 0.75 * math.pi)
