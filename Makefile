@@ -34,11 +34,13 @@ prior: $(STAMP)
 EVAL_SUNSKY := build/eval_sunsky
 eval-sunsky: $(STAMP)
 	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 \
-		--sun-elevation-deg 10:70
-	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1
-	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --out $(EVAL_SUNSKY)/est_sunny
-	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --out $(EVAL_SUNSKY)/est_overcast
+		--sun-elevation-deg 10:70 --capture --json
+	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --no-sun-prior --out $(EVAL_SUNSKY)/est_sunny --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sunsky --out $(EVAL_SUNSKY)/est_sunny_exif --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --out $(EVAL_SUNSKY)/est_overcast --json
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny
+	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny_exif
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_overcast
 
 clean:

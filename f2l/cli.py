@@ -100,6 +100,10 @@ def synth(
     ),
     specular: float = typer.Option(0.0, help="Strength of an optional specular highlight."),
     visibility: str = typer.Option("adaptive", help="Visibility method: adaptive or exact."),
+    capture: bool = typer.Option(
+        False, "--capture/--no-capture",
+        help="Give clear-sky records a capture time and place at which the real sun had the synthetic "
+             "sun's elevation (meta 'capture'), as a photo's EXIF would; `f2l estimate` uses it as a sun prior."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Render synthetic faces under known probes into shards (ground truth included)."""
@@ -113,7 +117,7 @@ def synth(
     summary = write_synthetic_shards(
         out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
         noise_sigma=noise, specular=specular, visibility_method=visibility, progress=not json_out,
-        sun_elevation_range_deg=elevation_range,
+        sun_elevation_range_deg=elevation_range, capture_meta=capture,
     )
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
 
@@ -126,7 +130,11 @@ def estimate(
     workers: int = typer.Option(1, help="Parallel worker processes."),
     threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
     max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
-    max_iter: int = typer.Option(40, help="Optimiser iterations (L-BFGS, or IRLS for linear models)."),
+    max_iter: int = typer.Option(18, help="L-BFGS iterations of non-linear models (sunsky: all phases together)."),
+    sun_prior: bool = typer.Option(
+        True, "--sun-prior/--no-sun-prior",
+        help="Constrain the sun's elevation from the photo's capture time and GPS position (EXIF or "
+             "the record's meta 'capture'); sun models only. The heading is unknown: azimuth stays free."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s)."""
@@ -139,7 +147,7 @@ def estimate(
     try:
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
-            max_iter=max_iter, progress=not json_out,
+            max_iter=max_iter, progress=not json_out, sun_prior=sun_prior,
         )
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))
@@ -175,11 +183,13 @@ def bench(
     grid: str = typer.Option("64x128", help="Lighting grid HxW."),
     threads: int = typer.Option(2, help="Threads."),
     seed: int = typer.Option(1, help="Seed of the synthetic set."),
+    sun_skip_faces: int = typer.Option(2, help="Overcast faces on which sunsky runs with and without its exact sun core (0: none)."),
 ) -> None:
     """Error versus run time of the installed models on synthetic faces (table + PNG plot)."""
     from f2l.bench import run_bench
 
-    result = run_bench(faces=faces, models=model, out_dir=out, image_size=image_size, grid=_grid(grid), threads=threads, seed=seed)
+    result = run_bench(faces=faces, models=model, out_dir=out, image_size=image_size, grid=_grid(grid), threads=threads,
+                       seed=seed, sun_skip_faces=sun_skip_faces)
     typer.echo(result["markdown"])
     typer.echo(f"\nwrote {result['table_md']}, {result['plot_png']}")
 

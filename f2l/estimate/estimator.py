@@ -58,7 +58,7 @@ class EstimatorConfig:
     light_prior_weight: float = 1e-3
     albedo_prior_weight: float = 1e-3
     negativity_weight: float = 1.0
-    max_iter: int = 40
+    max_iter: int = 18
     tolerance: float = 1e-4
     max_pixels: int | None = None  # subsample usable pixels (deterministic) for speed
     lowrank_k: int = 96
@@ -79,11 +79,17 @@ class EstimatorConfig:
     sun_starts: int = 3  # search candidates refined by L-BFGS: distinct suns (>= 25 deg apart) + no sun
     sun_core_texels: int = 48  # lobe texels with exact visibility (sky_transport.py)
     sun_kappa_init: float = 6000.0
-    sun_max_pixels: int | None = 4096  # evenly spaced usable pixels for sun models
-    sun_all_starts_iters: int = 8  # L-BFGS iterations on every start, then the best one alone
-    # (elevation_rad, sigma_rad) from the photo's time and place (f2l.io.capture), or None
+    sun_max_pixels: int | None = 2048  # evenly spaced usable pixels for sun models
+    sun_all_starts_iters: int = 4  # L-BFGS iterations on every start, then the best one alone
+    # after those, a solution whose sun share (_sun_share) is below this is overcast: the rest of
+    # the fit skips the exact sun core (f2l bench shows the time saved and the error cost); 0 = never
+    sun_core_min_share: float = 0.02
+    # (elevation_rad, sigma_rad) from the photo's time and place (f2l.io.capture), or None; the
+    # runner fills it per record when sun_prior_from_capture (CLI: --no-sun-prior turns it off)
     sun_elevation_prior: tuple[float, float] | None = None
     sun_prior_weight: float = 1e-3
+    sun_prior_from_capture: bool = True
+    sun_prior_sigma_rad: float = 0.05  # ~3 deg: the camera's tilt and the face fit's up vector
 
 
 @dataclass
@@ -375,6 +381,14 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         scale = prob.target_scale / np.maximum(pred, 1e-12)
         theta0 = _scale_intensities(model, theta0, scale, lo, hi)
 
+    # Sun models are optimised in psi = albedo x RGB weight (what the shading sees) rather than in
+    # the weights: the albedo then moves only the priors, not the data term, and L-BFGS is not
+    # slowed by the albedo-exposure ambiguity. Other models keep the weights.
+    weight_idx = None
+    if prob.hybrid is not None:
+        weight_idx = list(model.sun_layout["sky_rgb"]) + list(model.sun_layout["sun_rgb"])
+        theta0 = theta0.copy()
+        theta0[:, weight_idx] *= np.tile(rho0, 2)
     x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
     x_rho = torch.tensor(np.log(rho0) - np.log1p(-rho0), dtype=dtype)
     g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
@@ -384,9 +398,13 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     def unpack(x_theta, x_gnd, x_rho):
         params = box.to_params(x_theta)
         rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(x_theta), 3)
+        if weight_idx is not None:
+            params = torch.cat([params[:, :6] / rho.repeat(1, 2), params[:, 6:]], 1) if weight_idx == list(range(6)) \
+                else params.index_copy(1, torch.as_tensor(weight_idx), params[:, weight_idx] / rho.repeat(1, 2))
         return params, rho, torch.sigmoid(x_gnd)
 
     t_fit = time.perf_counter()
+    sun_core = 1.0 if prob.hybrid is not None else 0.0
     variables = (x_theta, x_gnd, x_rho)
     iterations = 0
     budget = cfg.max_iter
@@ -400,6 +418,12 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
             total, _ = prob.objective(*unpack(*variables))
         keep = int(np.nanargmin(total.numpy()))
         variables = tuple(v[keep : keep + 1].clone() for v in variables)
+        if cfg.sun_core_min_share > 0:
+            with torch.no_grad():
+                share = _sun_share(model, unpack(*variables)[0][0].numpy())
+            if share < cfg.sun_core_min_share:  # overcast solution: no exact sun visibility needed
+                prob.hybrid.core_texels = 0
+                sun_core = 0.0
     variables, its = _lbfgs(prob, unpack, variables, cfg, budget)
     iterations += its
     with torch.no_grad():
@@ -434,7 +458,8 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         runtime_s=runtime,
         probe=probe,
         sun_direction=model.sun_direction(best_np),
-        timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime},
+        timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime,
+                 "sun_core": sun_core},
         start_losses=[float(v) for v in totals],
         num_pixels_used=int(prob.idx.size),
     )
@@ -532,6 +557,16 @@ def _lbfgs(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, max_iter: 
     optimiser.step(closure)
     state = optimiser.state[optimiser._params[0]]
     return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))
+
+
+def _sun_share(model, params: np.ndarray) -> float:
+    """lum(w_sun) / (lum(w_sun) + pi lum(w_sky)): the sun's share of a horizontal plane's
+    irradiance under a sun at the zenith and a uniform sky of the same mean radiance."""
+    layout = model.sun_layout
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    sun = float(np.maximum(params[list(layout["sun_rgb"])], 0) @ luma)
+    sky = float(np.maximum(params[list(layout["sky_rgb"])], 0) @ luma)
+    return sun / max(sun + np.pi * sky, 1e-300)
 
 
 def _scale_intensities(model, theta0, scale, lo, hi):

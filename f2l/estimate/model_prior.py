@@ -63,11 +63,17 @@ class GmmPrior:
         """(B, D) -> (B,) negative log-likelihood, differentiable."""
         key = (features.dtype, features.device)
         if key not in self._torch:
+            # whitening: precision_k = L_k L_k^T, maha_k = |f L_k - mu_k L_k|^2 -- one matmul for all
+            # components (a few ops: this runs in every evaluation of the estimator's objective)
+            chol = np.linalg.cholesky(self.precisions)  # (K, D, D)
+            k, d = self.means.shape
+            whiten = chol.transpose(1, 0, 2).reshape(d, k * d)
+            shift = np.einsum("ki,kij->kj", self.means, chol).reshape(-1)
             self._torch[key] = tuple(torch.as_tensor(a, dtype=features.dtype, device=features.device)
-                                     for a in (self.means, self.precisions, self.log_norm))
-        means, precisions, log_norm = self._torch[key]
-        d = features[:, None, :] - means[None]
-        maha = torch.einsum("bki,kij,bkj->bk", d, precisions, d)
+                                     for a in (whiten, shift, self.log_norm))
+        whiten, shift, log_norm = self._torch[key]
+        z = (features @ whiten - shift).reshape(features.shape[0], len(log_norm), -1)
+        maha = (z * z).sum(-1)
         return -torch.logsumexp(log_norm[None] - 0.5 * maha, dim=1)
 
     def widened(self, min_std: np.ndarray) -> "GmmPrior":

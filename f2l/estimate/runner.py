@@ -8,8 +8,10 @@ A bad record or a failed estimate becomes a row with a status and a message; the
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import math
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -85,7 +87,12 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
             normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
             visibility_bits=record.visibility_bits, grid=grid, face_id=record.face_id,
         )
-        result = estimate(obs, model, cfg)
+        run_cfg, prior_note = cfg, ""
+        if cfg.sun_prior_from_capture and hasattr(model, "sun_layout"):
+            prior, prior_note = capture_sun_prior(record, cfg.sun_prior_sigma_rad)
+            if prior is not None:
+                run_cfg = dataclasses.replace(cfg, sun_elevation_prior=prior)
+        result = estimate(obs, model, run_cfg)
         safe_id = _safe_name(record.face_id)
         probe_rel = f"probes/{model_name}/{safe_id}.exr"
         preview_rel = f"previews/{model_name}/{safe_id}.png"
@@ -104,7 +111,7 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
             iterations=int(result.iterations),
             converged=bool(result.converged),
             status="ok",
-            message="",
+            message=prior_note,
             probe_path=probe_rel,
             preview_path=preview_rel,
             timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
@@ -115,6 +122,34 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
         row.update(status="error", message=f"{record.face_id}: {type(exc).__name__}: {exc}")
     row["runtime_s"] = time.perf_counter() - t0
     return row
+
+
+def capture_sun_prior(record, sigma_rad: float) -> tuple[tuple[float, float] | None, str]:
+    """(elevation_rad, sigma_rad) of the sun when the record says when and where it was taken
+    (``meta["capture"]``, else the EXIF of its source photo; f2l.io.capture), and a note.
+
+    The camera's heading is unknown, so only the elevation is used; the grid's +Y is taken as
+    the world's up. A sun below the horizon at capture time gives no prior (the note says so).
+    """
+    from f2l.io.capture import capture_from_meta, capture_status, solar_position
+
+    try:
+        info = capture_from_meta(record.meta or {})
+    except ValueError as exc:
+        return None, f"sun prior: bad meta capture ({exc})"
+    source = "meta"
+    if info is None:
+        path = Path(record.source_path or "")
+        if not path.is_file():
+            return None, ""
+        info, status = capture_status(path)
+        if info is None:
+            return None, f"sun prior: none ({status})"
+        source = info.source
+    elevation, _ = solar_position(info)
+    if elevation <= 0.0:
+        return None, f"sun prior: none (sun {math.degrees(elevation):.1f} deg, below the horizon at capture)"
+    return (elevation, sigma_rad), f"sun prior: elevation {math.degrees(elevation):.1f} deg from {source}"
 
 
 def torch_threads(n: int) -> None:
@@ -140,9 +175,10 @@ def run_estimates(
     workers: int = 1,
     threads: int = 2,
     max_pixels: int | None = None,
-    max_iter: int = 40,
+    max_iter: int = 18,
     progress: bool = True,
     config: EstimatorConfig | None = None,
+    sun_prior: bool = True,
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict."""
     from f2l.io.shards import BadRecord, count_records, iter_records
@@ -154,7 +190,8 @@ def run_estimates(
     out_dir.mkdir(parents=True, exist_ok=True)
     for name in models:  # fail fast, with the registry's message, on an unknown model
         load_model(name, LatLongGrid(8, 16))
-    cfg = config or EstimatorConfig(threads=threads, max_pixels=max_pixels, max_iter=max_iter)
+    cfg = config or EstimatorConfig(threads=threads, max_pixels=max_pixels, max_iter=max_iter,
+                                    sun_prior_from_capture=sun_prior)
     shard_paths = [str(Path(s).resolve()) for s in shards]
     run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models, "config": asdict(cfg)}
     _write_json_atomic(out_dir / RUN_FILE, run_info)

@@ -82,7 +82,7 @@ class SkyTransport:
         block_of = (r_idx // br) * self.shape_blocks[1] + c_idx // bc
         omega_b = np.bincount(block_of, weights=sa, minlength=t_blk.shape[1])
         self.t_blk = torch.from_numpy(t_blk)
-        self.d_omega = torch.from_numpy(sa)
+        self.d_omega = torch.from_numpy(sa.copy())
         self.omega_b = torch.from_numpy(omega_b)
         self.block_of = block_of
         self.cache = ColumnCache(transport, t_blk, block_of, sa / omega_b[block_of])

@@ -28,7 +28,7 @@ import numpy as np
 from f2l.lighting.grid import LatLongGrid
 
 LATTICE_STEP = 2  # candidate suns on every 2nd texel row; columns thinned to keep ~equal spacing
-MAX_SEARCH_PIXELS = 2048
+MAX_SEARCH_PIXELS = 1024
 
 
 @dataclass
@@ -93,9 +93,10 @@ def _nnls2(h11, h12, h22, b1, b2):
 
 
 def search(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid,
-           texels: np.ndarray, sky_blocks: np.ndarray, e_blocks: np.ndarray, ground_albedo: float) -> list[SunCandidate]:
-    """Score every candidate texel x sky shape; returns candidates sorted by residual, then the
-    best sun-less candidate (module docstring).
+           texels: np.ndarray, sky_blocks: np.ndarray, e_blocks: np.ndarray, ground_albedo: float,
+           keep: int = 256) -> list[SunCandidate]:
+    """Score every candidate texel x sky shape; returns the best ``keep`` sorted by residual, then
+    the best sun-less candidate (module docstring).
 
     t_blk (N, nb) block transport, g (N,) ground row sums, ``columns(texels) -> (N, k)`` exact T
     columns, y (N, 3) observed shading, ``texels`` (k,) candidate sun texels, sky_blocks
@@ -130,7 +131,8 @@ def search(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLo
     total = val.sum(-1) + yy_sum  # (k, S) weighted squared residual
     sky_x = np.maximum(b1, 0.0) / np.maximum(h11, 1e-300)  # the same skies without a sun
     sky_total = (-sky_x * np.maximum(b1, 0.0)).sum(-1) + yy_sum
-    out = [_candidate(grid, texels, flat, S, x1, x2, total) for flat in np.argsort(total, axis=None)]
+    order = np.argsort(total, axis=None)[:keep]
+    out = [_candidate(grid, texels, flat, S, x1, x2, total) for flat in order]
     best_sky = int(np.argmin(sky_total))
     out.append(_candidate(grid, texels, best_sky, S, sky_x, np.zeros_like(x2), sky_total))
     return out

@@ -47,7 +47,7 @@ from PIL import Image
 
 __all__ = [
     "CaptureInfo", "SOURCES", "read_capture", "capture_status", "capture_from_exif_tags",
-    "capture_from_meta", "capture_to_meta", "solar_position",
+    "capture_from_meta", "capture_to_meta", "solar_position", "capture_for_elevation",
 ]  # fmt: skip
 
 SOURCES = ("exif-gps-time", "exif-offset-time", "meta")
@@ -361,3 +361,26 @@ def solar_position(info: CaptureInfo) -> tuple[float, float]:
     elevation = _astral_elevation(observer, info.utc, with_refraction=True)
     azimuth = _astral_azimuth(observer, info.utc) % 360.0
     return math.radians(elevation), math.radians(azimuth)
+
+
+def capture_for_elevation(elevation_rad: float, latitude_deg: float = 10.0, longitude_deg: float = 0.0,
+                          day: datetime | None = None) -> CaptureInfo:
+    """A capture (morning of ``day``, default 2024-06-21 UTC, at the given place) at which the sun
+    stands at ``elevation_rad`` (apparent): for synthetic records that carry a consistent time and
+    place. Found by bisection on :func:`solar_position` between solar midnight and noon (to
+    ~0.01 deg: astral ignores fractions of a second); raises ValueError when the sun never gets
+    that high there on that day."""
+    day = day or datetime(2024, 6, 21, tzinfo=timezone.utc)
+    noon = day.replace(hour=12, minute=0, second=0, microsecond=0) - timedelta(hours=longitude_deg / 15.0)
+
+    def elevation_at(t: datetime) -> float:
+        return solar_position(CaptureInfo(utc=t, latitude_deg=latitude_deg, longitude_deg=longitude_deg))[0]
+
+    lo, hi = noon - timedelta(hours=12), noon
+    if not elevation_at(lo) < elevation_rad < elevation_at(hi):
+        raise ValueError(f"the sun does not reach {math.degrees(elevation_rad):.2f} deg at "
+                         f"({latitude_deg}, {longitude_deg}) on {day.date()}")
+    for _ in range(40):
+        mid = lo + (hi - lo) / 2
+        lo, hi = (mid, hi) if elevation_at(mid) < elevation_rad else (lo, mid)
+    return CaptureInfo(utc=lo + (hi - lo) / 2, latitude_deg=latitude_deg, longitude_deg=longitude_deg, source="meta")

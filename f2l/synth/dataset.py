@@ -8,6 +8,7 @@ and stored as a :class:`f2l.io.shards.FaceRecord` plus two side files: the groun
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -29,6 +30,7 @@ def write_synthetic_shards(
     noise_sigma: float = 0.002,
     progress: bool = True,
     records_per_shard: int = 64,
+    capture_meta: bool = False,
     **render_options,
 ) -> dict:
     """Render ``n`` faces into the shard directory ``out``; returns a summary dict.
@@ -37,9 +39,12 @@ def write_synthetic_shards(
     overcast_fraction, specular, visibility_method, threads, albedo, sun_elevation_range_deg);
     the sensor noise defaults to 0.002 here, as a photo has some. The noise is added to the
     linear image before it is sRGB-encoded and rounded to 8 bits, and the records' observed
-    pixels are the decoded 8-bit codes.
+    pixels are the decoded 8-bit codes. ``capture_meta`` gives each clear-sky record a
+    ``meta["capture"]`` (time and place, ``f2l.io.capture.capture_for_elevation``) at which the
+    real sun stood at the synthetic sun's elevation, for the estimator's sun prior.
     """
     from f2l.io.shards import FaceRecord, ShardWriter, write_side_photo, write_side_probe
+    from f2l.io.capture import capture_for_elevation, capture_to_meta
     from f2l.synth.render import make_synthetic_set
 
     out = Path(out)
@@ -59,6 +64,9 @@ def write_synthetic_shards(
             photo_rel = write_side_photo(out, face_id, face.photo_srgb)
             meta = dict(face.meta)
             meta["albedo"] = [float(v) for v in face.albedo]
+            sun_elevation_deg = meta.get("sky", {}).get("sun_elevation_deg")
+            if capture_meta and sun_elevation_deg is not None:
+                meta.update(capture_to_meta(capture_for_elevation(math.radians(sun_elevation_deg))))
             kinds[meta.get("sky", {}).get("kind", "clear")] = kinds.get(meta.get("sky", {}).get("kind", "clear"), 0) + 1
             writer.write(
                 FaceRecord(

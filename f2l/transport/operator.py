@@ -271,6 +271,8 @@ class Transport:
         """
         br, bc = (int(b) for b in block)
         h, w = self.grid.shape
+        if br <= 0 or bc <= 0 or n_rows <= 0 or first_row < 0:
+            raise ValueError(f"block {block}, {n_rows} rows from row {first_row}: sizes must be positive")
         if n_rows % br or w % bc or first_row + n_rows > h or w % 8:
             raise ValueError(f"{n_rows} rows x {w} columns do not split into {br}x{bc} blocks")
         nb_r, nb_c = n_rows // br, w // bc
@@ -331,6 +333,8 @@ class Transport:
         ``rows``: only these pixels, as for :meth:`dense`)."""
         texels = np.asarray(texels, dtype=np.int64).reshape(-1)
         idx = self._row_index(rows)
+        if isinstance(idx, np.ndarray) and idx.ndim == 0:  # a single integer row
+            idx = idx[None]
         bits = (self.vis_bits[idx][:, texels >> 3] >> (texels & 7).astype(np.uint8)) & 1
         cos = self.normals[idx] @ self._texel_weights[texels].T  # <n, w> dOmega / pi
         return (bits * np.maximum(cos, 0.0)).astype(dtype, copy=False)
