@@ -421,7 +421,7 @@ def test_search_finds_the_sun(face, face_transport, model, which):
     prob = _Problem(obs, model, EstimatorConfig())
     starts = prob.sun_search_starts(albedo, rho_g)
     found = prob.search_candidates
-    assert len(found) == texels.size * len(model.search_shapes()) + 1
+    assert len(found) == min(256, texels.size * len(model.search_shapes())) + 1  # the best 256 + no-sun
     best = found[0]
     best_dir = direction_from_angles(best.elevation_rad, best.azimuth_rad)
     assert _angle_deg(best_dir, sun_dir) < 6.0  # measured: the exact texel
