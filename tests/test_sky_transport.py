@@ -474,8 +474,16 @@ def test_distinct_keeps_separation():
                 continue
             d = direction_from_angles(c.elevation_rad, c.azimuth_rad)
             assert min(_angle_deg(d, e) for e in dirs) < sep
-    # more than fit on the hemisphere: returns what there is
-    assert 1 <= len(sun_search.distinct(cands, 100, 80.0)) < 100
+    # more than fit on the hemisphere: it returns a maximal set, not the count asked for. Points
+    # pairwise >= 80 deg apart on the upper hemisphere: at most 5 (zenith + 4 near the horizon),
+    # and the greedy pick is maximal -- every candidate left out is within 80 deg of a pick.
+    picked = sun_search.distinct(cands, 100, 80.0)
+    assert picked[0] is cands[0] and 2 <= len(picked) <= 5
+    dirs = [direction_from_angles(c.elevation_rad, c.azimuth_rad) for c in picked]
+    assert all(_angle_deg(a, b) >= 80.0 - 1e-9 for i, a in enumerate(dirs) for b in dirs[:i])
+    for c in cands:
+        d = direction_from_angles(c.elevation_rad, c.azimuth_rad)
+        assert any(c is p for p in picked) or min(_angle_deg(d, e) for e in dirs) < 80.0
 
 
 # -- 4. the estimator's sun path, end to end ----------------------------------------------------------
