@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench prior eval-sunsky clean
+.PHONY: setup demo test bench bench-faces prior eval-sunsky eval-fit-faces clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/f2l bench --faces 1
+
+bench-faces: $(STAMP)
+	$(BIN)/f2l bench-faces --faces 6
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)
@@ -42,6 +45,21 @@ eval-sunsky: $(STAMP)
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny_exif
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_overcast
+
+# Face fitting end to end: synthetic photos (painted features, 256 px, EXIF focal length) under
+# known sunny skies -> f2l fit-faces -> normal error against the true mesh -> sunsky estimates from
+# the fitted geometry and from its true-geometry twin (same pixels and observations), side by side.
+EVAL_FIT := build/eval_fit_faces
+eval-fit-faces: $(STAMP)
+	$(BIN)/f2l synth --out $(EVAL_FIT)/truth --n 12 --seed 201 --image-size 256 --features \
+		--overcast-fraction 0 --sun-elevation-deg 10:70 --json
+	$(BIN)/f2l fit-faces $(EVAL_FIT)/truth/photos --out $(EVAL_FIT)/fitted \
+		--gt-probes $(EVAL_FIT)/truth/probes --json
+	$(BIN)/f2l compare-geometry $(EVAL_FIT)/fitted --truth $(EVAL_FIT)/truth --twin-out $(EVAL_FIT)/true_geometry
+	$(BIN)/f2l estimate $(EVAL_FIT)/fitted -m sunsky --no-sun-prior --out $(EVAL_FIT)/est_fitted --json
+	$(BIN)/f2l estimate $(EVAL_FIT)/true_geometry -m sunsky --no-sun-prior --out $(EVAL_FIT)/est_true_geometry --json
+	$(BIN)/f2l evaluate $(EVAL_FIT)/est_fitted
+	$(BIN)/f2l evaluate $(EVAL_FIT)/est_true_geometry
 
 clean:
 	rm -rf $(VENV) demo_out

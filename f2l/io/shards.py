@@ -510,8 +510,10 @@ def write_side_probe(out_dir: str | os.PathLike, face_id: str, probe: np.ndarray
 
 
 def write_side_photo(out_dir: str | os.PathLike, face_id: str, image: np.ndarray,
-                     fmt: str = "png") -> str:
-    """Write a uint8 (H, W, 3) display image to ``out_dir/photos/<face_id>.<fmt>``; relative path."""
+                     fmt: str = "png", exif=None) -> str:
+    """Write a uint8 (H, W, 3) display image to ``out_dir/photos/<face_id>.<fmt>``; relative path.
+
+    ``exif`` (a ``PIL.Image.Exif``) is embedded when given (PNG eXIf chunk or JPEG APP1)."""
     from PIL import Image
 
     _check_face_id(face_id)
@@ -523,8 +525,9 @@ def write_side_photo(out_dir: str | os.PathLike, face_id: str, image: np.ndarray
         raise ValueError(f"face {face_id!r}: photo must be uint8 (H, W, 3), got "
                          f"{image.dtype} {image.shape}")
     pil_fmt = "PNG" if fmt == "png" else "JPEG"
+    extra = {} if exif is None else {"exif": exif}
     return _atomic_side_write(Path(out_dir), f"photos/{face_id}.{fmt}",
-                              lambda p: Image.fromarray(image).save(p, format=pil_fmt))
+                              lambda p: Image.fromarray(image).save(p, format=pil_fmt, **extra))
 
 
 def load_gt_probe(shard_dir: str | os.PathLike, record: FaceRecord) -> np.ndarray | None:

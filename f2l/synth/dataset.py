@@ -21,6 +21,29 @@ def face_id_for(seed: int, index: int) -> str:
     return f"synth-s{seed}-{index:05d}"
 
 
+SYNTH_FOCAL_LENGTH_MM = 50.0
+
+
+def camera_exif(focal_px: float):
+    """EXIF that records the synthetic pinhole: FocalLength 50 mm and the FocalPlaneXResolution
+    (pixels per mm, unit 4 = mm) that makes it ``focal_px`` pixels, as a camera would."""
+    from fractions import Fraction
+
+    from PIL import Image
+    from PIL.TiffImagePlugin import IFDRational
+
+    exif = Image.Exif()
+    exif[0x010F] = "f2l"  # Make
+    exif[0x0110] = "synthetic pinhole"  # Model
+    ifd = exif.get_ifd(0x8769)
+    focal = Fraction(SYNTH_FOCAL_LENGTH_MM).limit_denominator(1000)
+    per_mm = Fraction(focal_px / SYNTH_FOCAL_LENGTH_MM).limit_denominator(100000)
+    ifd[0x920A] = IFDRational(focal.numerator, focal.denominator)  # FocalLength
+    ifd[0xA20E] = IFDRational(per_mm.numerator, per_mm.denominator)  # FocalPlaneXResolution
+    ifd[0xA210] = 4  # FocalPlaneResolutionUnit: mm
+    return exif
+
+
 def write_synthetic_shards(
     out: Path,
     n: int = 12,
@@ -61,7 +84,8 @@ def write_synthetic_shards(
         for i, face in enumerate(faces):
             face_id = face_id_for(seed, i)
             probe_rel = write_side_probe(out, face_id, face.gt_probe)
-            photo_rel = write_side_photo(out, face_id, face.photo_srgb)
+            photo_rel = write_side_photo(out, face_id, face.photo_srgb,
+                                         exif=camera_exif(face.meta["focal_px"]))
             meta = dict(face.meta)
             meta["albedo"] = [float(v) for v in face.albedo]
             sun_elevation_deg = meta.get("sky", {}).get("sun_elevation_deg")

@@ -199,6 +199,58 @@ def _sun_from_probe(grid: LatLongGrid, probe: np.ndarray, cap_deg: float = 5.0):
     return d, e
 
 
+def project_landmarks(head_pose_deg, image_size: int, fov_deg: float = FOV_DEG) -> np.ndarray:
+    """The 468 canonical landmarks under the head pose, projected to continuous photo pixels
+    (x right, y down) of the synthetic camera; (468, 2)."""
+    from f2l.synth.facemesh import canonical_face_mesh
+
+    v = np.asarray(canonical_face_mesh()[0], dtype=np.float64)
+    sub = np.asarray(face_mesh(2).vertices, dtype=np.float64)  # posed_face_mesh centres on this
+    centre = 0.5 * (sub.min(0) + sub.max(0))
+    v = (v - centre) @ pose_matrix(*head_pose_deg).T + np.array([0.0, 0.0, -FACE_DISTANCE_CM])
+    f = (image_size / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    return np.stack([image_size / 2.0 + f * v[:, 0] / -v[:, 2],
+                     image_size / 2.0 - f * v[:, 1] / -v[:, 2]], axis=1)
+
+
+# Albedos of the painted features (linear RGB).
+SCLERA_ALBEDO = (0.55, 0.52, 0.50)
+IRIS_ALBEDO = (0.06, 0.04, 0.03)
+BROW_ALBEDO = (0.05, 0.035, 0.025)
+NOSTRIL_ALBEDO = (0.02, 0.012, 0.01)
+LIP_TINT = (1.05, 0.55, 0.55)  # multiplies the skin albedo
+
+
+def paint_features(skin_albedo: np.ndarray, landmarks_xy: np.ndarray, pix_xy: np.ndarray):
+    """Per-pixel albedo (M, 3): skin, with eyes (sclera and an iris disc of 0.42 × the eye's
+    width), brows, lips and nostrils painted from the undilated feature polygons."""
+    from matplotlib.path import Path
+
+    from f2l.face import regions
+
+    xy = np.asarray(landmarks_xy, dtype=np.float64)
+    out = np.tile(np.asarray(skin_albedo, dtype=np.float64), (len(pix_xy), 1))
+
+    def inside(idx):
+        poly = xy[list(idx)]
+        return Path(poly).contains_points(pix_xy)
+
+    out[inside(regions.LIPS_OUTER)] *= np.array(LIP_TINT)
+    for brow in (regions.RIGHT_BROW, regions.LEFT_BROW):
+        out[inside(brow)] = BROW_ALBEDO
+    for nostril in (regions.RIGHT_NOSTRIL, regions.LEFT_NOSTRIL):
+        poly = regions._by_angle(xy[list(nostril)])
+        out[Path(poly).contains_points(pix_xy)] = NOSTRIL_ALBEDO
+    for eye in (regions.RIGHT_EYE, regions.LEFT_EYE):
+        in_eye = inside(eye)
+        out[in_eye] = SCLERA_ALBEDO
+        corners = xy[[eye[0], eye[8]]]
+        centre = xy[list(eye)].mean(0)
+        radius = 0.21 * float(np.linalg.norm(corners[1] - corners[0]))
+        out[in_eye & (np.linalg.norm(pix_xy - centre, axis=1) < radius)] = IRIS_ALBEDO
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Rendering
 # ---------------------------------------------------------------------------------------------
@@ -215,6 +267,7 @@ def render_face(
     sun_direction=None,
     threads: int = 2,
     sky_info: dict | None = None,
+    features: bool = False,
 ) -> SyntheticFace:
     """Render the canonical face under ``probe`` (H, W, 3 linear radiance on ``grid``).
 
@@ -222,7 +275,10 @@ def render_face(
     ``head_pose_deg`` is given, albedo (``f2l.estimate.skin.sample_skin_albedo``) unless given,
     then the noise. ``specular`` = k_s of the Blinn-Phong sun highlight (0 = Lambertian only);
     its sun is ``sun_direction`` or the probe's brightest sky texel. ``sky_info`` is copied into
-    ``meta['sky']``.
+    ``meta['sky']``. ``features`` paints eyes (sclera and iris), brows, lips and nostrils into
+    the albedo (:func:`paint_features`), so that a face detector finds the photo; the record's
+    mask then keeps only skin (:func:`f2l.face.regions.skin_regions` on the true landmarks) and
+    ``meta['landmarks_xy']`` holds the 468 true landmark positions (continuous photo pixels).
     """
     probe = np.asarray(probe, dtype=np.float32)
     if probe.shape != (grid.height, grid.width, 3):
@@ -257,7 +313,16 @@ def render_face(
         pixel_rc=np.stack(np.divmod(idx, image_size), axis=1),
     )
     l_flat = probe.reshape(-1, 3).astype(np.float64)
-    shading = albedo[None, :] * _transport_matmul(vis_all, normals, grid, l_flat, threads)
+    albedo_px = np.broadcast_to(albedo, (len(idx), 3))
+    landmarks_xy = skin = None
+    if features:
+        landmarks_xy = project_landmarks(head_pose_deg, image_size)
+        pix_xy = np.stack([idx % image_size + 0.5, idx // image_size + 0.5], axis=1)
+        albedo_px = paint_features(albedo, landmarks_xy, pix_xy)
+        from f2l.face.regions import skin_regions
+
+        skin = skin_regions(landmarks_xy, pix_xy)["skin"]
+    shading = albedo_px * _transport_matmul(vis_all, normals, grid, l_flat, threads)
 
     if specular > 0.0:
         sun_dir, e_sun = _sun_from_probe(grid, probe)
@@ -286,12 +351,16 @@ def render_face(
     photo = np.round(_srgb_encode(image) * 255.0).astype(np.uint8).reshape(image_size, image_size, 3)
 
     # the record: camera-facing face pixels only
+    if skin is not None:
+        skin = skin[facing]
     idx, points, normals, shading = idx[facing], points[facing], normals[facing], shading[facing]
     vis_bits = np.ascontiguousarray(vis_all[facing])
     pixel_rc = np.stack(np.divmod(idx, image_size), axis=1).astype(np.int32)
     face_codes = photo.reshape(-1, 3)[idx]
     observed = _srgb_decode(face_codes.astype(np.float64) / 255.0)
     mask = ~(face_codes == 255).any(axis=1) & ~(face_codes <= 2).all(axis=1)
+    if skin is not None:
+        mask &= skin
 
     sky = dict(sky_info) if sky_info is not None else {}
     focal_px = (image_size / 2.0) / math.tan(math.radians(FOV_DEG) / 2.0)
@@ -311,6 +380,8 @@ def render_face(
         num_masked=int(mask.sum()),
         grid=[grid.height, grid.width],
     )
+    if landmarks_xy is not None:
+        meta["landmarks_xy"] = np.round(landmarks_xy, 3).tolist()
     return SyntheticFace(
         photo_srgb=photo,
         pixel_rc=pixel_rc,
@@ -342,6 +413,7 @@ def make_synthetic_set(
     threads: int = 2,
     albedo=None,
     sun_elevation_range_deg: tuple[float, float] | None = None,
+    features: bool = False,
 ) -> Iterator[SyntheticFace]:
     """Yield ``n`` synthetic faces, each under a :func:`~f2l.synth.skies.random_sky`.
 
@@ -376,6 +448,7 @@ def make_synthetic_set(
             sun_direction=sun_dir,
             threads=threads,
             sky_info=info,
+            features=features,
         )
         face.meta["index"] = i
         face.meta["seed"] = int(seed)

@@ -1,0 +1,248 @@
+"""One photo → face records: landmarks, metric mesh, working-resolution pixels, skin mask, transport.
+
+For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
+
+1. reject faces that are too small (landmark box < ``min_face_px``), cut off by the frame
+   (> ``max_outside_fraction`` of the landmarks outside), or in profile (|yaw| > ``max_yaw_deg``);
+2. lift the landmarks to a metric mesh (:func:`f2l.face.geometry.reconstruct_vertices`),
+   Loop-subdivide it, and rasterise the working view (a square crop around the face resampled
+   to ``resolution`` px) from the photo's camera: points, normals;
+3. observed linear RGB: the photo's linear image averaged over each working pixel's footprint
+   (``k × k`` bilinear samples, k = ceil(footprint) ≤ 8); a working pixel is clipped if any
+   sample is, near-black if all are;
+4. skin mask: inside the face oval and off the features and border (:mod:`f2l.face.regions`),
+   not clipped, not near-black;
+5. visibility bits on the lighting grid (:func:`f2l.transport.compute_visibility`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from f2l.face import geometry
+from f2l.lighting.grid import LatLongGrid
+
+MAX_SAMPLES_PER_AXIS = 8
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Parameters of :func:`fit_photo_faces` (all recorded in each face's meta)."""
+
+    resolution: int = 104
+    margin: float = 0.08
+    subdivisions: int = 2
+    depth_source: str = "rigid"
+    grid: LatLongGrid = field(default_factory=LatLongGrid)
+    visibility_method: str = "adaptive"
+    lattice_levels: int = 1
+    threads: int = 2
+    min_face_px: float = 40.0
+    max_yaw_deg: float = 50.0
+    max_outside_fraction: float = 0.02
+    min_mask_pixels: int = 200
+    max_faces: int = 8
+
+    def to_meta(self) -> dict:
+        return {"resolution": self.resolution, "margin": self.margin,
+                "subdivisions": self.subdivisions, "depth_source": self.depth_source,
+                "grid": [self.grid.height, self.grid.width],
+                "visibility_method": self.visibility_method,
+                "lattice_levels": self.lattice_levels, "min_face_px": self.min_face_px,
+                "max_yaw_deg": self.max_yaw_deg,
+                "max_outside_fraction": self.max_outside_fraction}
+
+
+@dataclass
+class FaceFit:
+    """A fitted face at working resolution (arrays over its N face pixels)."""
+
+    face_index: int
+    landmarks: np.ndarray        # (478, 3) photo px
+    head: geometry.HeadFit
+    view: geometry.WorkingView
+    pixel_rc: np.ndarray         # (N, 2) int32 working (row, col)
+    points: np.ndarray           # (N, 3) cm, camera frame
+    normals: np.ndarray          # (N, 3) unit
+    observed_rgb: np.ndarray     # (N, 3) linear
+    mask: np.ndarray             # (N,) usable skin
+    excluded: dict               # reason -> (N,) bool
+    visibility_bits: np.ndarray  # (N, ceil(L/8)) uint8
+    crop_display: np.ndarray     # (R, R, 3) uint8 working crop of the display image
+    detection_score: float
+    presence: float
+    timings: dict
+
+    @property
+    def num_pixels(self) -> int:
+        return int(len(self.pixel_rc))
+
+    def counts(self) -> dict:
+        out = {"num_pixels": self.num_pixels, "num_masked": int(self.mask.sum())}
+        out.update({f"num_{k}": int(v.sum()) for k, v in self.excluded.items()})
+        return out
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A detected face that is not turned into a record: ``reason`` is a status code."""
+
+    face_index: int
+    reason: str
+    message: str
+
+
+# ---------------------------------------------------------------------------------------------
+def _footprint_samples(view: geometry.WorkingView):
+    """Photo sample positions (R, R, k*k, 2) and k for every working pixel's footprint."""
+    k = int(min(MAX_SAMPLES_PER_AXIS, max(1, math.ceil(view.step))))
+    r = view.resolution
+    sub = (np.arange(k) + 0.5) / k  # within the working pixel, in working units
+    cols = (np.arange(r)[:, None] + sub[None, :]).ravel()  # (R*k,)
+    xs = view.x0 + cols * view.step
+    ys = view.y0 + cols * view.step
+    return xs, ys, k
+
+
+def _resample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray, k: int, order: int):
+    """Sample (H, W, C) or (H, W) at the separable grid (ys × xs), photo coordinates; returns
+    (R, R, k*k, C) (or without C): each working pixel's k×k samples."""
+    from scipy.ndimage import map_coordinates
+
+    yy, xx = np.meshgrid(ys - 0.5, xs - 0.5, indexing="ij")  # pixel centres at +0.5
+    coords = np.stack([yy.ravel(), xx.ravel()])
+    r = len(xs) // k
+    chans = [image] if image.ndim == 2 else [image[..., c] for c in range(image.shape[2])]
+    out = [map_coordinates(ch, coords, order=order, mode="nearest").reshape(r, k, r, k)
+           .transpose(0, 2, 1, 3).reshape(r, r, k * k) for ch in chans]
+    return out[0] if image.ndim == 2 else np.stack(out, axis=-1)
+
+
+def _outside_fraction(xy: np.ndarray, hw: tuple[int, int]) -> float:
+    h, w = hw
+    out = (xy[:, 0] < 0) | (xy[:, 0] > w) | (xy[:, 1] < 0) | (xy[:, 1] > h)
+    return float(out.mean())
+
+
+def sky_visibility(bits: np.ndarray, grid: LatLongGrid) -> np.ndarray:
+    """Solid-angle fraction (N,) of the upper hemisphere that each pixel sees (visible bits)."""
+    from f2l.io.shards import unpack_visibility
+
+    vis = unpack_visibility(bits, grid.size).reshape(len(bits), grid.height, grid.width)
+    sa = grid.solid_angles.reshape(grid.height, grid.width)[: grid.height // 2]
+    return (vis[:, : grid.height // 2] * sa).sum((1, 2)) / sa.sum()
+
+
+# ---------------------------------------------------------------------------------------------
+def fit_face(photo, landmarks, face_index: int, options: FitOptions,
+             detection_score: float = 1.0, presence: float = 1.0) -> FaceFit | Rejected:
+    """Fit one face of ``photo`` (:class:`f2l.face.photo.Photo`) from its (478, 3) landmarks."""
+    from f2l.face.regions import skin_regions
+    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.transport import compute_visibility
+
+    t0 = time.perf_counter()
+    hw = photo.linear.shape[:2]
+    lm = np.asarray(landmarks, dtype=np.float64)
+    mesh_xy = lm[: geometry.NUM_MESH_LANDMARKS, :2]
+    size_px = float((mesh_xy.max(0) - mesh_xy.min(0)).max())
+    if size_px < options.min_face_px:
+        return Rejected(face_index, "too_small",
+                        f"face {face_index} spans {size_px:.0f} px < {options.min_face_px:.0f} px")
+    outside = _outside_fraction(mesh_xy, hw)
+    if outside > options.max_outside_fraction:
+        return Rejected(face_index, "cut_off", f"face {face_index}: {outside:.0%} of its "
+                        f"landmarks lie outside the frame")
+    canon, tri, _ = canonical_face_mesh()
+    head = geometry.reconstruct_vertices(lm, photo.focal_px, hw, canon, options.depth_source)
+    if abs(head.yaw_deg) > options.max_yaw_deg:
+        return Rejected(face_index, "profile", f"face {face_index}: head yaw {head.yaw_deg:+.0f}°"
+                        f" exceeds ±{options.max_yaw_deg:.0f}° (profile view)")
+    v, f, vn = geometry.subdivided_mesh(head.vertices, tri, options.subdivisions)
+    view = geometry.working_view(lm, options.resolution, options.margin)
+    r = view.resolution
+    rc_all = np.stack(np.divmod(np.arange(r * r), r), axis=1)
+    rays = geometry.rays_for(view.photo_xy(rc_all), photo.focal_px, hw)
+    hit, points, normals = geometry.rasterise(v, f, vn, rays)
+    pixel_rc = rc_all[hit].astype(np.int32)
+
+    xs, ys, k = _footprint_samples(view)
+    rgb = _resample(photo.linear, xs, ys, k, order=1).mean(2).reshape(-1, 3)[hit]
+    clipped = _resample(photo.clipped.astype(np.uint8), xs, ys, k, order=0).any(2).ravel()[hit]
+    black = _resample(photo.black.astype(np.uint8), xs, ys, k, order=0).all(2).ravel()[hit]
+    crop = _resample(photo.display.astype(np.float32), xs, ys, k, order=1).mean(2)
+    crop = np.clip(np.round(crop), 0, 255).astype(np.uint8)
+
+    centres = pixel_rc[:, ::-1] + 0.5
+    reg = skin_regions(view.to_working(lm), centres)
+    excluded = {"features": reg["features"], "border": reg["border"],
+                "clipped": clipped & reg["skin"], "black": black & reg["skin"] & ~clipped}
+    mask = reg["skin"] & ~clipped & ~black
+    if int(mask.sum()) < options.min_mask_pixels:
+        return Rejected(face_index, "too_few_pixels", f"face {face_index}: {int(mask.sum())} "
+                        f"usable skin pixels < {options.min_mask_pixels}")
+    t1 = time.perf_counter()
+    bits = compute_visibility(v, f, points, normals, options.grid,
+                              method=options.visibility_method, threads=options.threads,
+                              pixel_rc=pixel_rc, lattice_levels=options.lattice_levels)
+    t2 = time.perf_counter()
+    return FaceFit(
+        face_index=face_index, landmarks=lm, head=head, view=view, pixel_rc=pixel_rc,
+        points=points.astype(np.float32), normals=normals.astype(np.float32),
+        observed_rgb=np.maximum(rgb, 0).astype(np.float32), mask=mask, excluded=excluded,
+        visibility_bits=bits, crop_display=crop, detection_score=float(detection_score),
+        presence=float(presence),
+        timings={"geometry_s": round(t1 - t0, 4), "transport_s": round(t2 - t1, 4)},
+    )
+
+
+def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
+    """All faces of one photo: a list of :class:`FaceFit` or :class:`Rejected`, score order."""
+    t0 = time.perf_counter()
+    found = landmarker(photo.display, max_faces=options.max_faces)
+    landmarks_s = (time.perf_counter() - t0) / max(1, len(found))
+    out = []
+    for i, lms in enumerate(found):
+        fit = fit_face(photo, lms.points, i, options, lms.detection.score, lms.presence)
+        if isinstance(fit, FaceFit):
+            fit.timings["landmarks_s"] = round(landmarks_s, 4)
+        out.append(fit)
+    return out
+
+
+def face_record(fit: FaceFit, photo, face_id: str, options: FitOptions, *,
+                source_path: str, photo_rel: str | None = None,
+                gt_probe_rel: str | None = None):
+    """The :class:`f2l.io.shards.FaceRecord` of a fit (pixel_rc in the working crop)."""
+    from f2l.io.shards import FaceRecord
+
+    head = fit.head
+    meta = {
+        "fit": options.to_meta(),
+        "crop": {**fit.view.to_meta(), "photo_height": int(photo.linear.shape[0]),
+                 "photo_width": int(photo.linear.shape[1])},
+        "camera": {"focal_px": float(photo.focal_px), "focal_source": photo.focal_source,
+                   "orientation": int(photo.orientation)},
+        "pose_deg": {"yaw": head.yaw_deg, "pitch": head.pitch_deg, "roll": head.roll_deg},
+        "face_distance_cm": head.distance_cm,
+        "landmark_residual_cm": head.residual_cm,
+        "detection_score": fit.detection_score,
+        "presence": fit.presence,
+        "counts": fit.counts(),
+        "timings": fit.timings,
+        "exif": photo.exif,
+        "photo_kind": photo.kind,
+    }
+    r = fit.view.resolution
+    return FaceRecord(
+        face_id=face_id, source_path=source_path, face_index=fit.face_index,
+        image_height=r, image_width=r, pixel_rc=fit.pixel_rc, points=fit.points,
+        normals=fit.normals, observed_rgb=fit.observed_rgb, mask=fit.mask,
+        grid_height=options.grid.height, grid_width=options.grid.width,
+        visibility_bits=fit.visibility_bits, visibility_method=options.visibility_method,
+        gt_probe_path=gt_probe_rel, photo_path=photo_rel, meta=meta,
+    )
