@@ -323,6 +323,7 @@ def fit_faces_cmd(
     landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
     gt_probes: Optional[Path] = typer.Option(None, help="Folder of ground-truth probes <photo stem>.exr to attach to the records."),
     threads: int = typer.Option(2, help="Embree threads for the transport."),
+    transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
@@ -337,7 +338,13 @@ def fit_faces_cmd(
         raise typer.BadParameter(f"must be one of {', '.join(DEPTH_SOURCES)}", param_hint="--depth")
     if resolution < 32:
         raise typer.BadParameter("must be at least 32", param_hint="--resolution")
-    options = FitOptions(resolution=resolution, grid=_grid(grid), depth_source=depth, threads=threads)
+    from f2l.face.fit import TRANSPORT_PIXELS
+
+    if transport_pixels not in TRANSPORT_PIXELS:
+        raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
+                                 param_hint="--transport-pixels")
+    options = FitOptions(resolution=resolution, grid=_grid(grid), depth_source=depth, threads=threads,
+                         transport_pixels=transport_pixels)
     try:
         summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
                             gt_probes=gt_probes, progress=not json_out)

@@ -206,3 +206,72 @@ def test_sky_visibility_fractions():
     cols = np.tile(np.arange(grid.width), grid.height)
     half = pack_visibility((cols < grid.width // 2)[None])
     assert sky_visibility(half, grid)[0] == pytest.approx(0.5, abs=1e-9)
+
+
+# -- Loop subdivision as a sparse matrix -------------------------------------------------------
+def _trimesh_loop(vertices, faces, iterations):
+    from trimesh.remesh import subdivide_loop
+
+    return subdivide_loop(np.asarray(vertices, float), np.asarray(faces), iterations=iterations)
+
+
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_loop_matrix_matches_trimesh_on_the_open_face_mesh(canonical, iterations):
+    from f2l.face.subdivision import loop_subdivision
+    from f2l.synth.facemesh import canonical_face_mesh
+
+    tri = np.asarray(canonical_face_mesh()[1])
+    rng = np.random.default_rng(iterations)
+    v = canonical + rng.normal(0.0, 0.3, canonical.shape)  # any positions: the map is linear
+    s, f = loop_subdivision(tri, len(v), iterations)
+    ref_v, ref_f = _trimesh_loop(v, tri, iterations)
+    assert s.shape == (len(ref_v), len(v)) and np.array_equal(f, ref_f)
+    np.testing.assert_allclose(s @ v, ref_v, rtol=0, atol=1e-12)
+    # affine invariance: every row sums to one
+    np.testing.assert_allclose(np.asarray(s.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    assert loop_subdivision(tri, len(v), iterations)[0] is s  # cached per topology
+
+
+def test_loop_matrix_matches_trimesh_on_a_closed_mesh():
+    import trimesh
+
+    from f2l.face.subdivision import loop_subdivision
+
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    s, f = loop_subdivision(ico.faces, len(ico.vertices), 2)
+    ref_v, ref_f = _trimesh_loop(ico.vertices, ico.faces, 2)
+    assert np.array_equal(f, ref_f)
+    np.testing.assert_allclose(s @ ico.vertices, ref_v, rtol=0, atol=1e-12)
+
+
+def test_loop_matrix_handles_separate_bodies_and_refuses_non_manifold_edges():
+    from f2l.face.subdivision import loop_subdivision
+
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    v = np.concatenate([tet, tet + [5.0, 0.0, 0.0]]) + [0.0, 0.0, -20.0]
+    f = np.concatenate([tf, tf + 4])
+    s, sf = loop_subdivision(f, len(v), 2)
+    ref_v, ref_f = _trimesh_loop(v, f, 2)
+    assert np.array_equal(sf, ref_f)
+    np.testing.assert_allclose(s @ v, ref_v, atol=1e-12)
+    fan = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # three triangles on edge (0, 1)
+    with pytest.raises(ValueError, match="non-manifold"):
+        loop_subdivision(fan, 5, 1)
+
+
+def test_rasterise_and_visibility_share_one_scene(canonical):
+    from f2l.transport.visibility import scene_for
+
+    v = canonical + [0.0, 0.0, -60.0]
+    from f2l.synth.facemesh import canonical_face_mesh
+
+    tri = np.asarray(canonical_face_mesh()[1])
+    a = scene_for(v, tri)
+    assert scene_for(v.copy(), tri.astype(np.int32)) is a  # equal mesh: reused
+    b = scene_for(v + [0.0, 0.0, 1e-3], tri)  # moved: rebuilt
+    assert b is not a
+    # the rebuilt scene answers for the moved mesh: a ray through the mesh centre hits it
+    centre = (v + [0.0, 0.0, 1e-3]).mean(0)
+    hit = b.intersect(np.zeros((1, 3)), (centre / np.linalg.norm(centre))[None])
+    assert hit["primID"][0] >= 0

@@ -104,6 +104,17 @@ def test_visibility_panel(image):
     assert np.array_equal(_px(image, 3, 5, 5), [EMPTY] * 3)
 
 
+def test_visibility_panel_greys_untraced_pixels():
+    kw = _inputs()
+    traced = kw["pixel_rc"][:, 0] < 30  # rows >= 30 were not ray-traced
+    img = render_overlay(**kw, traced=traced)
+    assert np.array_equal(_px(img, 3, 20, 40), colormap(1.0))
+    assert np.array_equal(_px(img, 3, 40, 40), [EMPTY] * 3)
+    assert np.array_equal(_px(img, 3, 40, 20), [EMPTY] * 3)
+    with pytest.raises(ValueError, match="traced"):
+        render_overlay(**kw, traced=traced[:-1])
+
+
 def test_scale_one_and_no_exclusions():
     img = render_overlay(**_inputs(scale=1, excluded=None, title=""))
     assert np.array_equal(_px(img, 1, 30, 40, scale=1), [255, 128, 128])

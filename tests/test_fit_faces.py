@@ -16,7 +16,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from f2l.cli import app
-from f2l.face.fit import FaceFit, FitOptions, Rejected, fit_face
+from f2l.face.fit import FaceFit, FitOptions, Rejected, face_record, fit_face
 from f2l.face.overlay import PAD, overlay_layout
 from f2l.face.regions import LEFT_EYE, RIGHT_EYE
 from f2l.io.shards import iter_records
@@ -367,3 +367,51 @@ def test_altered_bundle_via_cli(altered_bundle, photo_dir, tmp_path):
     assert res.exit_code != 0
     assert "altered_landmarker.task" in res.stderr and "SHA-256" in res.stderr
     assert list(iter_records(tmp_path)) == []
+
+
+def test_footprint_resample_matches_scipy_map_coordinates():
+    from scipy.ndimage import map_coordinates
+
+    from f2l.face.fit import _resample
+
+    rng = np.random.default_rng(0)
+    img = rng.random((50, 70, 3)).astype(np.float32)
+    xs, ys = np.linspace(-3, 75, 40), np.linspace(-2, 53, 40)  # reaches past every edge
+    yy, xx = np.meshgrid(ys - 0.5, xs - 0.5, indexing="ij")
+    for order in (0, 1):
+        ref = np.stack([map_coordinates(img[..., c], np.stack([yy.ravel(), xx.ravel()]),
+                                        order=order, mode="nearest").reshape(40, 40)
+                        for c in range(3)], axis=-1)
+        got = _resample(img, xs, ys, 2, order)  # (20, 20, 4, 3): 2x2 samples per pixel
+        got = got.reshape(20, 20, 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(40, 40, 3)
+        np.testing.assert_allclose(got, ref, atol=1e-6)
+    grey = _resample(img[..., 0], xs, ys, 4, 1)
+    assert grey.shape == (10, 10, 16)
+
+
+def test_transport_traced_on_the_mask_only(grey_photo):
+    from f2l.io.shards import unpack_visibility
+    from f2l.transport.visibility import front_mask
+
+    lm = synthetic_landmarks(5.0, 0.0, 0.0)
+    grid = LatLongGrid(32, 64)
+    fits = {p: fit_face(grey_photo, lm, 0, FitOptions(resolution=96, grid=grid, transport_pixels=p))
+            for p in ("mask", "all")}
+    m, a = fits["mask"], fits["all"]
+    assert np.array_equal(m.pixel_rc, a.pixel_rc) and np.array_equal(m.mask, a.mask)
+    assert np.array_equal(m.traced, m.mask) and a.traced.all()
+    untraced = ~m.mask
+    assert untraced.sum() > 500
+    vm, va = (unpack_visibility(f.visibility_bits, grid.size) for f in (m, a))
+    # untraced pixels: their whole front hemisphere, no self-shadowing
+    assert np.array_equal(vm[untraced], front_mask(m.normals[untraced].astype(np.float64), grid))
+    # ... which the traced transport shadows in places (eye sockets, nose sides)
+    assert (va[untraced] < vm[untraced]).any()
+    # traced pixels agree with tracing every pixel (the pixel lattice differs; adaptive casting
+    # may differ on a few grazing texels)
+    assert (vm[m.mask] != va[m.mask]).mean() < 2e-3
+    rec_meta = face_record(m, grey_photo, "f", FitOptions(grid=grid), source_path="x").meta
+    assert rec_meta["transport"]["num_traced"] == int(m.mask.sum())
+    assert rec_meta["fit"]["transport_pixels"] == "mask"
+    with pytest.raises(ValueError, match="transport_pixels"):
+        fit_face(grey_photo, lm, 0, FitOptions(resolution=64, grid=grid, transport_pixels="skin"))

@@ -181,16 +181,24 @@ def rigid_pose(landmarks_xy: np.ndarray, canonical_cm: np.ndarray, rot0: np.ndar
 
 def subdivided_mesh(vertices: np.ndarray, faces: np.ndarray, subdivisions: int = 2):
     """Loop-subdivided mesh: (vertices (V, 3) float64, faces (F, 3) int64, unit vertex normals
-    (V, 3) oriented toward the camera side of the face)."""
+    (V, 3) oriented toward the camera side of the face). The subdivision is a cached sparse
+    matrix per topology (:mod:`f2l.face.subdivision`); trimesh's (which splits the mesh into
+    bodies) for a non-manifold one."""
     import trimesh
 
-    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, dtype=np.float64),
-                           faces=np.asarray(faces, dtype=np.int64), process=False)
+    from f2l.face.subdivision import loop_subdivision
+
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
     if subdivisions:
-        mesh = mesh.subdivide_loop(iterations=int(subdivisions))
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(mesh.faces, dtype=np.int64)
+        try:
+            s, f = loop_subdivision(f, len(v), int(subdivisions))
+            v = s @ v
+        except ValueError:
+            v, f = trimesh.remesh.subdivide_loop(v, f, iterations=int(subdivisions))
+    mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
     n = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    f = np.asarray(f, dtype=np.int64)
     # the canonical winding makes normals point out of the face; the lift keeps handedness, so
     # they face the camera; flip if a degenerate fit turned the mesh inside out
     if np.einsum("ij,ij->i", n, -v).mean() < 0:
@@ -215,14 +223,10 @@ def rasterise(vertices: np.ndarray, faces: np.ndarray, vertex_normals: np.ndarra
     Returns (hit_index (M,) into ``rays``, points (M, 3), unit normals (M, 3)) for the rays that
     hit the mesh with the interpolated normal facing the camera by more than MIN_FACING.
     """
-    from embreex.mesh_construction import TriangleMesh
-    from embreex.rtcore_scene import EmbreeScene
+    from f2l.transport.visibility import scene_for
 
-    scene = EmbreeScene()
-    _mesh = TriangleMesh(  # noqa: F841  (keep the geometry alive while the scene is used)
-        scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
     d = np.ascontiguousarray(rays, dtype=np.float32)
-    res = scene.run(np.zeros_like(d), d, output=1)
+    res = scene_for(vertices, faces).intersect(np.zeros_like(d), d)
     prim = res["primID"].astype(np.int64)
     idx = np.nonzero(prim >= 0)[0]
     bu, bv = res["u"][idx].astype(np.float64), res["v"][idx].astype(np.float64)

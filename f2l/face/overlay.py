@@ -8,7 +8,8 @@ Four panels side by side, each the working-resolution crop upscaled ``scale``× 
 3. the mask: the photo in greyscale, usable pixels tinted green, excluded pixels tinted by reason
    (:data:`REASON_COLOURS`; unknown reasons grey; a pixel in ``mask`` is shown as usable even if a
    reason flags it, otherwise the first flagging reason in dict order wins);
-4. sky visibility through a viridis-like colormap on face pixels, dark grey elsewhere.
+4. sky visibility through a viridis-like colormap on the ray-traced face pixels (``traced``;
+   all face pixels when it is None), dark grey elsewhere.
 
 A caption strip (:data:`CAPTION_H` px) above the panels holds the title and the panel labels; a
 footer below holds the mask legend (pixel counts per reason; reasons may overlap) and a colour
@@ -68,10 +69,15 @@ def overlay_layout(crop_shape: tuple[int, ...], scale: int = 2) -> list[tuple[in
 
 
 def render_overlay(crop, landmarks_xy, triangles, pixel_rc, normals, mask, excluded,
-                   sky_visibility, title: str = "", scale: int = 2) -> np.ndarray:
+                   sky_visibility, title: str = "", scale: int = 2,
+                   traced: np.ndarray | None = None) -> np.ndarray:
     """Render the four-panel overlay as an (H, W, 3) uint8 image; see the module docstring."""
     crop, lm, tri, rc, nrm, mask, excluded, vis, scale = _validate(
         crop, landmarks_xy, triangles, pixel_rc, normals, mask, excluded, sky_visibility, title, scale)
+    if traced is not None:
+        traced = np.asarray(traced)
+        if traced.dtype != bool or traced.shape != (len(rc),):
+            raise ValueError(f"traced: expected ({len(rc)},) bool, got {traced.dtype} {traced.shape}")
     R, C = crop.shape[:2]
     rows, cols = rc[:, 0], rc[:, 1]
 
@@ -79,7 +85,8 @@ def render_overlay(crop, landmarks_xy, triangles, pixel_rc, normals, mask, exclu
     normal_panel[rows, cols] = np.rint((np.clip(nrm, -1, 1) * 0.5 + 0.5) * 255).astype(np.uint8)
 
     vis_panel = np.full_like(crop, EMPTY)
-    vis_panel[rows, cols] = colormap(vis)
+    shown = slice(None) if traced is None else traced
+    vis_panel[rows[shown], cols[shown]] = colormap(vis[shown])
 
     grey = crop.astype(np.float32) @ _LUMA.astype(np.float32)
     mask_panel = np.repeat(grey[..., None], 3, axis=2)

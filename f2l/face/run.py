@@ -68,7 +68,8 @@ def _overlay(out: Path, fid: str, fit: FaceFit, options: FitOptions) -> str:
     write_overlay(out / rel, crop=fit.crop_display, landmarks_xy=fit.view.to_working(fit.landmarks),
                   triangles=np.asarray(canonical_face_mesh()[1]), pixel_rc=fit.pixel_rc,
                   normals=fit.normals, mask=fit.mask, excluded=fit.excluded,
-                  sky_visibility=sky_visibility(fit.visibility_bits, options.grid), title=title)
+                  sky_visibility=sky_visibility(fit.visibility_bits, options.grid), title=title,
+                  traced=fit.traced)
     return rel
 
 
