@@ -51,7 +51,7 @@ eval-sunsky: $(STAMP)
 # the fitted geometry and from its true-geometry twin (same pixels and observations), side by side.
 EVAL_FIT := build/eval_fit_faces
 eval-fit-faces: $(STAMP)
-	$(BIN)/f2l synth --out $(EVAL_FIT)/truth --n 12 --seed 201 --image-size 256 --features \
+	$(BIN)/f2l synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features \
 		--overcast-fraction 0 --sun-elevation-deg 10:70 --json
 	$(BIN)/f2l fit-faces $(EVAL_FIT)/truth/photos --out $(EVAL_FIT)/fitted \
 		--gt-probes $(EVAL_FIT)/truth/probes --json
