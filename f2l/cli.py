@@ -406,6 +406,16 @@ def bench_faces_cmd(
     typer.echo(to_json(result) if json_out else format_table(result))
 
 
+# stages with a CLI module of their own
+from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
+from f2l.colour.cli import calibrate_cmd  # noqa: E402
+
+app.command("ingest")(ingest_cmd)
+app.command("make-probes")(make_probes_cmd)
+app.command("bench-capture")(bench_capture_cmd)
+app.command("calibrate")(calibrate_cmd)
+
+
 def main() -> None:
     try:
         app()

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from f2l.face.fit import FaceFit, FitOptions, face_record, fit_photo_faces, sky_visibility
+from f2l.io.hashing import file_sha256
 
 PHOTO_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
 RAW_EXTENSIONS = {".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".dng", ".raf",
@@ -42,13 +43,6 @@ def expand_photos(paths) -> list[Path]:
         else:
             out.append(p)
     return out
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 hex digest of a file's bytes (streamed)."""
-    from f2l.synth.facemesh import _sha256
-
-    return _sha256(Path(path))
 
 
 def face_id(path: Path, sha256: str, index: int) -> str:

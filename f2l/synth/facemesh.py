@@ -14,7 +14,6 @@ variable.
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import os
 import struct
@@ -23,6 +22,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+from f2l.io.hashing import file_sha256
 
 FACE_LANDMARKER_SHA256 = "64184e229b263107bc2b804c6625db1341ff2bb731874b0bcc2fe6544e0bc9ff"
 GEOMETRY_MEMBER = "geometry_pipeline_metadata_landmarks.binarypb"
@@ -180,21 +181,13 @@ def default_task_path() -> Path:
     return Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task"
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 @lru_cache(maxsize=4)
 def _load(path_str: str, check_sha256: bool):
     path = Path(path_str)
     if not path.is_file():
         raise FaceMeshError(f"{path}: face landmarker bundle not found")
     if check_sha256:
-        digest = _sha256(path)
+        digest = file_sha256(path)
         if digest != FACE_LANDMARKER_SHA256:
             raise FaceMeshError(
                 f"{path}: SHA-256 mismatch (got {digest}, expected {FACE_LANDMARKER_SHA256}); "

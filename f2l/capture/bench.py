@@ -1,0 +1,115 @@
+"""``f2l bench-capture``: ingest + merge run time against a bare LibRaw decode of the same files,
+and peak memory as the number of brackets grows.
+
+A synthetic capture tree (``brackets`` × ``frames`` real DNGs of ``megapixels`` each, written by
+:func:`f2l.capture.dng.write_bracket` from a sky scene with a clipped sun) is timed three ways,
+each in a fresh child process so that one's memory never counts against another's:
+
+* bare decode: ``rawpy.imread(path).raw_image_visible`` for every file (the floor);
+* ingest: ``f2l ingest`` (metadata incl. one LibRaw decode per RAW for the black/white levels,
+  SHA-256, sessions and brackets; no content detection);
+* merge: ``f2l make-probes`` (one bracket in memory at a time, views written as EXR).
+
+Peak memory is the child's peak resident set size (``VmHWM``, reset after the imports through
+``/proc/self/clear_refs``), and that peak minus the resident size right after the imports: what
+the work itself needed.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+_CHILD = r"""
+import json, sys, time
+from pathlib import Path
+import rawpy
+from f2l.capture.manifest import run_ingest
+from f2l.capture.probes import make_probes
+import f2l.capture.merge, f2l.capture.sphere, f2l.capture.raw_meta, f2l.io.exr, f2l.io.tables
+import f2l.metrics.lighting, exifread, PIL.Image, tqdm
+mode, root, work = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
+def status_mib(key):
+    with open("/proc/self/status") as fh:
+        return next(int(l.split()[1]) for l in fh if l.startswith(key + ":")) / 1024
+with open("/proc/self/clear_refs", "w") as fh:  # reset the peak (VmHWM) after the imports
+    fh.write("5")
+base_mib = status_mib("VmRSS")
+t0 = time.perf_counter()  # imports done: time the work only
+if mode == "decode":
+    for p in sorted(root.rglob("*.dng")):
+        with rawpy.imread(str(p)) as raw:
+            raw.raw_image_visible
+elif mode == "ingest":
+    run_ingest(root, work, detect_roles=False)
+else:
+    make_probes(root, work)
+peak_mib = status_mib("VmHWM")
+print(json.dumps({"seconds": time.perf_counter() - t0, "peak_rss_mib": peak_mib,
+                  "work_mib": peak_mib - base_mib}))
+"""
+
+
+def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: int = 0) -> int:
+    """``brackets`` sessions of one ``frames``-frame bracket each; returns the number of files."""
+    from f2l.capture.dng import synthetic_sky_scene, write_bracket
+
+    h = int(round(np.sqrt(megapixels * 1e6 * 3 / 4) / 2)) * 2
+    w = int(round(h * 4 / 3 / 2)) * 2
+    scene = synthetic_sky_scene(h, w, seed=seed)
+    exposures = [2.0 ** (2 * k - 2 * frames) for k in range(frames)]
+    for b in range(brackets):
+        write_bracket(root / f"site{b:04d}" / "sky", scene, exposures, seed=seed + b,
+                      full_scale_radiance=float(np.percentile(scene, 50)) * 4.0 * max(exposures) / 64)
+    return brackets * frames
+
+
+def _child(mode: str, root: Path, work: Path) -> dict:
+    out = subprocess.run([sys.executable, "-c", _CHILD, mode, str(root), str(work)],
+                         check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
+                      repeat: int = 2) -> list[dict]:
+    """One row per tree size: files, decode / ingest / merge seconds (best of ``repeat``),
+    the (ingest + merge) / decode ratio and each stage's peak memory."""
+    rows = []
+    for n in sizes:
+        with tempfile.TemporaryDirectory(prefix="f2l-bench-capture-") as tmp:
+            root = Path(tmp) / "raw"
+            files = write_tree(root, n, frames, megapixels)
+            best: dict[str, dict] = {}
+            for _ in range(max(1, repeat)):
+                work = Path(tmp) / f"work-{time.monotonic_ns()}"
+                for mode in ("decode", "ingest", "merge"):
+                    r = _child(mode, root, work)
+                    if mode not in best or r["seconds"] < best[mode]["seconds"]:
+                        best[mode] = r
+            d, i, m = (best[k]["seconds"] for k in ("decode", "ingest", "merge"))
+            rows.append({"brackets": n, "files": files, "megapixels": megapixels,
+                         "decode_s": d, "ingest_s": i, "merge_s": m,
+                         "ratio": (i + m) / d if d > 0 else float("inf"),
+                         "files_per_s": files / (i + m),
+                         "peak_mib": {k: round(v["peak_rss_mib"], 1) for k, v in best.items()},
+                         "work_mib": {k: round(v["work_mib"], 1) for k, v in best.items()}})
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = ["| brackets | files | MP/file | bare decode s | ingest s | merge s | (ingest+merge)/decode "
+             "| files/s | peak MiB decode / ingest / merge | above imports MiB decode / ingest / merge |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p, q = r["peak_mib"], r["work_mib"]
+        lines.append(f"| {r['brackets']} | {r['files']} | {r['megapixels']:.1f} | {r['decode_s']:.2f} "
+                     f"| {r['ingest_s']:.2f} | {r['merge_s']:.2f} | {r['ratio']:.2f}x "
+                     f"| {r['files_per_s']:.1f} | {p['decode']} / {p['ingest']} / {p['merge']} "
+                     f"| {q['decode']} / {q['ingest']} / {q['merge']} |")
+    return "\n".join(lines)

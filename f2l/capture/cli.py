@@ -1,0 +1,97 @@
+"""CLI layer of the capture stages (registered on the main app by :mod:`f2l.cli`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+
+def ingest_cmd(
+    root: Path = typer.Argument(..., help="Capture tree: one folder per session (site), or a flat folder."),
+    work: Path = typer.Option(Path("work"), "--work", help="Work folder: captures.parquet goes here."),
+    session_gap_min: float = typer.Option(30.0, help="Flat folders: a gap longer than this (minutes) starts a new session."),
+    bracket_gap_s: float = typer.Option(15.0, help="Frames further apart than this (s) are not one bracket."),
+    detect_roles: bool = typer.Option(True, "--detect-roles/--no-detect-roles", help="Run the face/chart detectors on files no folder name or session.toml gives a role."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental)."""
+    from f2l.capture.manifest import run_ingest
+
+    try:
+        summary = run_ingest(root, work, session_gap_min=session_gap_min,
+                             bracket_gap_s=bracket_gap_s, detect_roles=detect_roles,
+                             progress=not json_out)
+    except FileNotFoundError as exc:
+        typer.echo(f"f2l: error: {exc}", err=True)
+        raise typer.Exit(code=2)
+    if json_out:
+        typer.echo(json.dumps(summary.to_json()))
+        return
+    _print_summary(summary)
+
+
+def _print_summary(summary) -> None:
+    import pyarrow.parquet as pq
+
+    typer.echo(f"{summary.files} files in {summary.sessions} sessions, {summary.brackets} brackets "
+               f"-> {summary.table}")
+    typer.echo(f"read {summary.read}, unchanged {summary.reused}"
+               + (" (nothing to do)" if summary.read == 0 else ""))
+    typer.echo("status: " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items()))
+    typer.echo("roles:  " + ", ".join(f"{k} {v}" for k, v in summary.by_role.items()))
+    rows = pq.read_table(summary.table, columns=["status", "message"]).to_pylist()
+    problems = [r["message"] for r in rows if r["status"] != "ok"]
+    for message in problems[:20]:
+        typer.echo(f"  {message}")
+    if len(problems) > 20:
+        typer.echo(f"  ... and {len(problems) - 20} more (see the status column)")
+
+
+def make_probes_cmd(
+    root: Path = typer.Argument(..., help="The capture tree given to `f2l ingest`."),
+    work: Path = typer.Option(Path("work"), "--work", help="Work folder holding captures.parquet; views/, probes/ and probes.parquet go here."),
+    grid: str = typer.Option("64x128", help="Probe grid HxW."),
+    view_max_side: int = typer.Option(1024, help="Merged views are box-averaged to at most this many px per side before they are written and assembled."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe."""
+    from f2l.capture.probes import make_probes
+
+    try:
+        h, w = (int(v) for v in grid.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter("expected HxW, e.g. 64x128", param_hint="--grid")
+    try:
+        summary = make_probes(root, work, grid_height=h, grid_width=w,
+                              view_max_side=view_max_side, progress=not json_out)
+    except FileNotFoundError as exc:
+        typer.echo(f"f2l: error: {exc}", err=True)
+        raise typer.Exit(code=2)
+    out = summary.to_json()
+    if json_out:
+        typer.echo(json.dumps(out))
+        return
+    typer.echo(f"{summary.brackets} brackets -> {summary.views} placed views -> {summary.probes} "
+               f"probes in {summary.seconds:.1f} s ({work}/probes.parquet)")
+    for r in summary.rows:
+        extra = "" if r["coverage_fraction"] is None else (
+            f" coverage {r['coverage_fraction']:.0%}, saturated {r['saturated_fraction']:.2%}")
+        typer.echo(f"  {r['kind']:5} {r['name']}: {r['status']}{extra} {r['message']}".rstrip())
+    if summary.errors and summary.views == 0:
+        raise typer.Exit(code=1)
+
+
+def bench_capture_cmd(
+    brackets: list[int] = typer.Option([2, 8], "--brackets", help="Tree sizes to time (brackets; repeatable)."),
+    frames: int = typer.Option(5, help="Frames per bracket."),
+    megapixels: float = typer.Option(2.0, help="Megapixels per synthetic DNG."),
+    repeat: int = typer.Option(2, help="Best of this many runs."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+) -> None:
+    """Ingest + merge time against a bare LibRaw decode of the same DNGs, and peak memory per tree size."""
+    from f2l.capture.bench import format_table, run_capture_bench
+
+    rows = run_capture_bench(tuple(brackets), frames=frames, megapixels=megapixels, repeat=repeat)
+    typer.echo(json.dumps(rows) if json_out else format_table(rows))

@@ -1,0 +1,385 @@
+"""``f2l ingest DIR``: a capture tree → ``captures.parquet`` (schema ``captures``).
+
+What a row says about a file, and how it is decided:
+
+* **kind** from the extension: camera RAW (anything LibRaw opens: CR2, CR3, NEF, ARW, DNG, ...),
+  ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``).
+* **metadata**: RAW through :func:`f2l.capture.raw_meta.read_raw_metadata` (exifread, and one
+  LibRaw decode, because LibRaw reports black/white levels and the CFA only after unpacking: a
+  Canon's black level is measured on masked pixels); images through exifread and Pillow's
+  header, EXR through OpenEXR's header, ``.hdr`` through its text header (no pixel decode).
+* **session** (one site): each top-level sub-folder of DIR is a session; files directly in DIR
+  are split into sessions where consecutive capture times are more than ``session_gap_min``
+  apart (capture time from EXIF, else the file's mtime).
+* **role**: a folder name on the path inside the session (:data:`ROLE_FOLDERS`, e.g. ``sky/``,
+  ``faces/``, ``chart/``, ``probes/``), else the session TOML's ``shots[].role``, else detected:
+  ``hdr`` files are probes; frames of the same camera, lens, size and focal length taken within
+  ``bracket_gap_s`` of each other with stepped exposures (``t·ISO/N²`` differing) form a
+  sky bracket; otherwise a face when the face detector fires on a small preview (the RAW's
+  embedded thumbnail, or the image itself), a chart when the chart detector does, else
+  ``other``.
+* **brackets**: frames of one bracket share ``bracket_id`` (``<session>/<first frame stem>``).
+  In a bracket folder, a run of one frame is ``skipped`` (nothing to merge) and a run that mixes
+  cameras or frame sizes is an ``error`` naming both; the rest of the folder is unaffected.
+* **session TOML** (``session.toml`` in the session folder, schema ``session``): lens projection,
+  field of view, vignetting, per-shot yaw/pitch/roll, probe azimuth; stored per row in
+  ``view_json``. An invalid TOML is reported on every row of its session, which is then ingested
+  without it.
+
+Incremental: ``WORK/captures.parquet`` from an earlier run is read first; a file whose relative
+path, size and mtime (ns) match a row written by the same :data:`INGEST_VERSION` is not opened
+again (no hashing, no decoding, no detection); any change re-reads it. Sessions and brackets are
+recomputed from the rows every time (cheap). The table is written atomically.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+INGEST_VERSION = 1
+RAW_EXTENSIONS = {".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".iiq", ".k25",
+                  ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw",
+                  ".rw2", ".rwl", ".sr2", ".srf", ".srw", ".x3f"}
+IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
+HDR_EXTENSIONS = {".exr", ".hdr"}
+ROLE_FOLDERS = {  # folder name (lower case) -> role
+    **dict.fromkeys(["sky", "skies", "bracket", "brackets", "hdr", "sphere", "spheres", "fisheye",
+                     "env", "environment"], "sky_bracket"),
+    **dict.fromkeys(["face", "faces", "people", "person", "persons", "portrait", "portraits",
+                     "subjects"], "face"),
+    **dict.fromkeys(["chart", "charts", "colorchecker", "colourchecker", "calibration", "calib"],
+                    "chart"),
+    **dict.fromkeys(["probe", "probes", "merged", "lightprobes"], "probe"),
+}
+SESSION_TOML = "session.toml"
+
+
+@dataclass
+class IngestSummary:
+    root: str
+    table: str
+    files: int = 0
+    read: int = 0
+    reused: int = 0
+    by_status: dict = field(default_factory=dict)
+    by_role: dict = field(default_factory=dict)
+    sessions: int = 0
+    brackets: int = 0
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+# -- scanning ------------------------------------------------------------------------------------
+def kind_of(path: Path) -> str | None:
+    ext = path.suffix.lower()
+    if ext in RAW_EXTENSIONS:
+        return "raw"
+    if ext in IMAGE_EXTENSIONS:
+        return "image"
+    if ext in HDR_EXTENSIONS:
+        return "hdr"
+    return None
+
+
+def scan(root: Path) -> list[Path]:
+    """Capture files under ``root`` (recursive, sorted, hidden files and folders skipped)."""
+    out = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+        for name in sorted(filenames):
+            p = Path(dirpath) / name
+            if not name.startswith(".") and kind_of(p) is not None:
+                out.append(p)
+    return out
+
+
+# -- metadata per kind ---------------------------------------------------------------------------
+def _empty_meta() -> dict:
+    return {"camera": "", "lens": None, "width": None, "height": None, "exposure_s": None,
+            "f_number": None, "iso": None, "ev100": None, "timestamp_utc": None,
+            "focal_length_mm": None, "orientation": 1, "gps_latitude_deg": None,
+            "gps_longitude_deg": None, "gps_altitude_m": None, "black_levels": [],
+            "white_level": None, "cfa_pattern": None}
+
+
+def _ev100(exposure_s, f_number, iso):
+    if not (exposure_s and f_number and iso):
+        return None
+    return math.log2(f_number**2 / exposure_s) - math.log2(iso / 100.0)
+
+
+def _raw_meta(path: Path) -> dict:
+    from f2l.capture.raw_meta import read_raw_metadata
+
+    m = read_raw_metadata(path)
+    out = _empty_meta()
+    out.update(camera=m.camera, lens=m.lens, width=m.width, height=m.height,
+               exposure_s=m.exposure_s, f_number=m.f_number, iso=m.iso,
+               ev100=_ev100(m.exposure_s, m.f_number, m.iso),
+               timestamp_utc=m.timestamp.isoformat() if m.timestamp else None,
+               focal_length_mm=m.focal_length_mm, orientation=int(m.orientation or 1),
+               gps_latitude_deg=m.gps_latitude_deg, gps_longitude_deg=m.gps_longitude_deg,
+               gps_altitude_m=m.gps_altitude_m, black_levels=[float(b) for b in m.black_levels],
+               white_level=float(m.white_level), cfa_pattern=m.cfa_pattern)
+    return out
+
+
+def _ratio(value) -> float | None:
+    try:
+        v = value.values[0] if hasattr(value, "values") else value
+        v = float(v.num) / float(v.den) if hasattr(v, "den") else float(v)
+        return v if math.isfinite(v) and v > 0 else None
+    except (ZeroDivisionError, TypeError, ValueError, IndexError):
+        return None
+
+
+def _image_meta(path: Path) -> dict:
+    import exifread
+    from PIL import Image
+
+    out = _empty_meta()
+    with Image.open(path) as im:  # header only
+        out["width"], out["height"] = int(im.size[0]), int(im.size[1])
+    logging.getLogger("exifread").setLevel(logging.ERROR)  # "file has no EXIF" is not news
+    with open(path, "rb") as fh:
+        tags = exifread.process_file(fh, details=False)
+    make = str(tags.get("Image Make", "")).strip()
+    model = str(tags.get("Image Model", "")).strip()
+    out["camera"] = f"{make} {model}".strip()
+    lens = tags.get("EXIF LensModel")
+    out["lens"] = str(lens).strip() if lens else None
+    out["exposure_s"] = _ratio(tags.get("EXIF ExposureTime"))
+    out["f_number"] = _ratio(tags.get("EXIF FNumber"))
+    out["iso"] = _ratio(tags.get("EXIF ISOSpeedRatings"))
+    out["focal_length_mm"] = _ratio(tags.get("EXIF FocalLength"))
+    out["ev100"] = _ev100(out["exposure_s"], out["f_number"], out["iso"])
+    stamp = tags.get("EXIF DateTimeOriginal") or tags.get("Image DateTime")
+    if stamp:
+        try:
+            out["timestamp_utc"] = datetime.strptime(str(stamp).strip(),
+                                                     "%Y:%m:%d %H:%M:%S").isoformat()
+        except ValueError:
+            pass
+    orient = tags.get("Image Orientation")
+    if orient is not None and getattr(orient, "values", None):
+        v = int(orient.values[0])
+        out["orientation"] = v if 1 <= v <= 8 else 1
+    return out
+
+
+def _hdr_meta(path: Path) -> dict:
+    out = _empty_meta()
+    if path.suffix.lower() == ".exr":
+        import OpenEXR
+
+        with OpenEXR.File(str(path), header_only=True) as f:
+            (x0, y0), (x1, y1) = f.header()["dataWindow"]
+        out["width"], out["height"] = int(x1 - x0 + 1), int(y1 - y0 + 1)
+        return out
+    with open(path, "rb") as fh:  # Radiance: text header, blank line, "-Y H +X W"
+        head = fh.read(65536)
+    lines = head.split(b"\n")
+    if not lines or not lines[0].startswith(b"#?"):
+        raise ValueError("not a Radiance HDR file (no #? signature)")
+    for i, line in enumerate(lines[1:], 1):
+        if not line.strip():
+            dims = lines[i + 1].split() if i + 1 < len(lines) else []
+            if len(dims) == 4:
+                out["height"], out["width"] = int(dims[1]), int(dims[3])
+                return out
+            break
+    raise ValueError("Radiance HDR header has no resolution line")
+
+
+def read_file_meta(path: Path, kind: str) -> dict:
+    """Metadata of one file (raises with a reason on unreadable input)."""
+    if path.stat().st_size == 0:
+        raise ValueError("empty file (0 bytes)")
+    reader = {"raw": _raw_meta, "image": _image_meta, "hdr": _hdr_meta}[kind]
+    return reader(path)
+
+
+# -- role detection by content -------------------------------------------------------------------
+def _preview(path: Path, kind: str, max_side: int = 640) -> np.ndarray | None:
+    """A small uint8 RGB preview: the RAW's embedded JPEG thumbnail, or the image itself."""
+    import io
+
+    from PIL import Image
+
+    if kind == "raw":
+        import rawpy
+
+        with rawpy.imread(str(path)) as raw:
+            try:
+                thumb = raw.extract_thumb()
+            except (rawpy.LibRawNoThumbnailError, rawpy.LibRawUnsupportedThumbnailError):
+                return None
+        if thumb.format != rawpy.ThumbFormat.JPEG:
+            return np.ascontiguousarray(thumb.data[..., :3]).astype(np.uint8)
+        im = Image.open(io.BytesIO(thumb.data))
+    else:
+        im = Image.open(path)
+        im.draft("RGB", (max_side, max_side))  # JPEG: decode at a reduced scale
+    with im:
+        im = im.convert("RGB")
+        im.thumbnail((max_side, max_side))
+        return np.asarray(im)
+
+
+class ContentRoles:
+    """Face / chart detectors for files whose role no folder or TOML gives (loaded lazily)."""
+
+    def __init__(self) -> None:
+        self._landmarker = None
+
+    def face(self, preview: np.ndarray) -> bool:
+        if self._landmarker is None:
+            from f2l.face.landmarker import FaceLandmarker
+
+            self._landmarker = FaceLandmarker()
+        return bool(self._landmarker.detect(preview))
+
+    def chart(self, preview: np.ndarray) -> bool:
+        from f2l.colour.detect import detect_chart
+        from f2l.face.photo import srgb_to_linear
+
+        linear = srgb_to_linear(preview / 255.0).astype(np.float32)
+        return detect_chart(preview, linear) is not None
+
+    def __call__(self, path: Path, kind: str) -> str:
+        preview = _preview(path, kind)
+        if preview is None:
+            return "other"
+        if self.chart(preview):
+            return "chart"
+        return "face" if self.face(preview) else "other"
+
+
+# -- sessions, TOML, brackets --------------------------------------------------------------------
+def _session_of(rel: Path) -> str | None:
+    """The top-level folder of a relative path, None for files directly in the root."""
+    return rel.parts[0] if len(rel.parts) > 1 else None
+
+
+def _folder_role(rel: Path) -> str | None:
+    for part in reversed(rel.parts[1:-1] if len(rel.parts) > 2 else rel.parts[:-1]):
+        role = ROLE_FOLDERS.get(part.lower())
+        if role:
+            return role
+    return None
+
+
+def load_session_toml(folder: Path) -> tuple[dict, str]:
+    """(config, problem): the folder's session.toml validated against schema ``session``;
+    ({}, "") when there is none, ({}, reason) when it is invalid."""
+    import jsonschema
+
+    from f2l.io.schema import load_schema
+
+    path = folder / SESSION_TOML
+    if not path.is_file():
+        return {}, ""
+    try:
+        config = tomllib.loads(path.read_text(encoding="utf-8"))
+        jsonschema.validate(config, load_schema("session"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        return {}, f"{path}: not valid TOML ({exc})"
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        return {}, f"{path}: {where}: {exc.message}"
+    return config, ""
+
+
+def view_for(config: dict, rel_in_session: str) -> dict:
+    """What the session TOML says about one file (lens defaults, first matching shot)."""
+    view = {}
+    lens = config.get("lens", {})
+    view.update({k: v for k, v in lens.items()})
+    if "probe_azimuth_deg" in config:
+        view["probe_azimuth_deg"] = config["probe_azimuth_deg"]
+    for shot in config.get("shots", []):
+        if fnmatch.fnmatch(rel_in_session, shot["files"]):
+            view.update({k: v for k, v in shot.items() if k != "files"})
+            break
+    return view
+
+
+def _capture_time(row: dict) -> float:
+    if row.get("timestamp_utc"):
+        try:
+            return datetime.fromisoformat(row["timestamp_utc"]).timestamp()
+        except ValueError:
+            pass
+    return row["mtime_ns"] / 1e9
+
+
+def split_by_time(rows: list[dict], gap_s: float) -> list[list[dict]]:
+    """Consecutive groups (by capture time) whose neighbours are at most ``gap_s`` apart."""
+    rows = sorted(rows, key=lambda r: (_capture_time(r), r["path"]))
+    groups: list[list[dict]] = []
+    for r in rows:
+        if groups and _capture_time(r) - _capture_time(groups[-1][-1]) <= gap_s:
+            groups[-1].append(r)
+        else:
+            groups.append([r])
+    return groups
+
+
+def _frame_key(r: dict) -> tuple:
+    return (r["camera"], r["lens"], r["width"], r["height"], r["focal_length_mm"])
+
+
+def _exposure(r: dict) -> float | None:
+    if not (r["exposure_s"] and r["f_number"] and r["iso"]):
+        return None
+    return r["exposure_s"] * r["iso"] / r["f_number"] ** 2
+
+
+def assign_brackets(rows: list[dict], gap_s: float) -> int:
+    """Set ``bracket_id`` / role / status on one session's frames (module doc); returns the
+    number of brackets."""
+    count = 0
+    frames = [r for r in rows if r["status"] == "ok" and r["kind"] in ("raw", "image")]
+    declared = [r for r in frames if r["role"] == "sky_bracket"]
+    free = [r for r in frames if r["role_source"] == "none"]
+    for run in split_by_time(declared, gap_s):
+        keys = {_frame_key(r) for r in run}
+        if len(keys) > 1:
+            desc = "; ".join(f"{k[0] or 'unknown camera'} {k[2]}x{k[3]}" for k in sorted(keys, key=str))
+            for r in run:
+                r["status"], r["message"] = "error", (
+                    f"{r['path']}: bracket mixes cameras or frame sizes ({desc})")
+            continue
+        if len(run) == 1:
+            r = run[0]
+            r["status"], r["message"] = "skipped", (
+                f"{r['path']}: bracket of one frame (no other frame within {gap_s:g} s): "
+                f"nothing to merge")
+            continue
+        count += 1
+        bid = f"{run[0]['session']}/{Path(run[0]['path']).stem}"
+        for r in run:
+            r["bracket_id"] = bid
+    # undeclared frames: a bracket if same camera/framing and stepped exposures
+    for run in split_by_time(free, gap_s):
+        by_key: dict = {}
+        for r in run:
+            by_key.setdefault(_frame_key(r), []).append(r)
+        for group in by_key.values():
+            exposures = {round(math.log2(e), 1) for e in map(_exposure, group) if e}
+            if len(group) >= 2 and len(exposures) >= 2 and all(_exposure(r) for r in group):
+                count += 1
+                bid = f"{group[0]['session']}/{Path(group[0]['path']).stem}"
+                for r in group:
+                    r.update(bracket_id=bid, role="sky_bracket", role_source="detected")
+    return count

@@ -1,0 +1,152 @@
+"""The incremental ingest run: scan → (reuse or read) rows → sessions, roles, brackets →
+``WORK/captures.parquet`` (atomic). See :mod:`f2l.capture.ingest` for what each column means."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from pathlib import Path
+
+from f2l.capture import ingest as ing
+from f2l.io.hashing import file_sha256
+
+TABLE_NAME = "captures.parquet"
+
+
+def _previous(table_path: Path) -> dict[str, dict]:
+    """Rows of an earlier run by path ({} when there is none or it cannot be read)."""
+    import pyarrow.parquet as pq
+
+    from f2l.io.schema import validate_table
+    from f2l.io.tables import table_row
+
+    if not table_path.is_file():
+        return {}
+    try:
+        table = pq.read_table(table_path)
+        validate_table(table, "captures", source=str(table_path))
+    except Exception:  # a damaged or older table: every file is read again
+        return {}
+    out = {}
+    for i in range(table.num_rows):
+        row = table_row(table, i)
+        row["black_levels"] = [float(v) for v in row["black_levels"]]
+        out[row["path"]] = row
+    return out
+
+
+def _read_row(path: Path, rel: str, kind: str, stat: os.stat_result) -> dict:
+    row = {"path": rel, "sha256": "", "size_bytes": int(stat.st_size),
+           "mtime_ns": int(stat.st_mtime_ns), "kind": kind, "session": "", "role": "other",
+           "role_source": "none", "bracket_id": None, "status": "ok", "message": "",
+           "view_json": "{}", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
+    try:
+        row.update(ing.read_file_meta(path, kind))
+        row["sha256"] = file_sha256(path)
+    except Exception as exc:  # bad input never stops the ingest: the row says why
+        msg = str(exc)
+        row.update(status="error", message=msg if msg.startswith(str(path)) else f"{path}: {msg}")
+    return row
+
+
+CONTENT_ROLES = ("face", "chart", "other")
+
+
+def _unchanged(old: dict | None, stat: os.stat_result) -> bool:
+    return (old is not None and old["size_bytes"] == stat.st_size
+            and old["mtime_ns"] == stat.st_mtime_ns
+            and old["ingest_version"] == ing.INGEST_VERSION)
+
+
+def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
+               session_gap_min: float = 30.0, bracket_gap_s: float = 15.0,
+               detect_roles: bool = True, progress: bool = False) -> ing.IngestSummary:
+    """Ingest the tree under ``root`` into ``work/captures.parquet``; returns counts."""
+    from f2l.io.tables import rows_to_table, write_table_atomic
+
+    root, work = Path(root), Path(work)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: not a folder")
+    work.mkdir(parents=True, exist_ok=True)
+    table_path = work / TABLE_NAME
+    previous = _previous(table_path)
+    summary = ing.IngestSummary(root=str(root), table=str(table_path))
+    files = ing.scan(root)
+    if progress:
+        from tqdm import tqdm
+
+        files = tqdm(files, desc="ingest", unit="file")
+    rows = []
+    for path in files:
+        rel = path.relative_to(root).as_posix()
+        stat = path.stat()
+        old = previous.get(rel)
+        if _unchanged(old, stat):
+            row = dict(old)
+            cached = (old["role"] if old["role_source"] == "detected"
+                      and old["role"] in CONTENT_ROLES else None)
+            summary.reused += 1
+        else:
+            row = _read_row(path, rel, ing.kind_of(path), stat)
+            cached = None
+            summary.read += 1
+        row["_file_error"] = row["sha256"] == ""  # reading the file failed: keep its message
+        row["_content_role"] = cached
+        rows.append(row)
+    _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary)
+    for r in rows:
+        r.pop("_file_error")
+        r.pop("_content_role")
+    rows.sort(key=lambda r: r["path"])
+    write_table_atomic(rows_to_table(rows, "captures"), table_path, "captures")
+    summary.files = len(rows)
+    summary.by_status = dict(sorted(Counter(r["status"] for r in rows).items()))
+    summary.by_role = dict(sorted(Counter(r["role"] for r in rows).items()))
+    return summary
+
+
+def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s: float,
+            detect_roles: bool, summary: ing.IngestSummary) -> None:
+    """Sessions, TOML views, roles, brackets and statuses, recomputed on every run; content
+    detection runs only for files without a cached detected role."""
+    loose = [r for r in rows if ing._session_of(Path(r["path"])) is None]
+    for r in rows:
+        r["session"] = ing._session_of(Path(r["path"])) or ""
+    for k, group in enumerate(ing.split_by_time(loose, session_gap_min * 60.0)):
+        for r in group:
+            r["session"] = f"{root.name or 'root'}-{k + 1:02d}"
+    sessions = sorted({r["session"] for r in rows})
+    summary.sessions = len(sessions)
+    detector = ing.ContentRoles() if detect_roles else None
+    for s in sessions:
+        members = [r for r in rows if r["session"] == s]
+        in_folder = (root / s).is_dir() and any(ing._session_of(Path(r["path"])) for r in members)
+        config, problem = ing.load_session_toml(root / s if in_folder else root)
+        for r in members:
+            rel_in = Path(r["path"]).relative_to(s).as_posix() if in_folder else r["path"]
+            view = ing.view_for(config, rel_in)
+            r["view_json"] = json.dumps(view, sort_keys=True)
+            role, source = ing._folder_role(Path(r["path"])), "folder"
+            if role is None and "role" in view:
+                role, source = view["role"], "toml"
+            if role is None and r["kind"] == "hdr":
+                role, source = "probe", "detected"
+            if role is None:
+                role, source = "other", "none"
+            r["role"], r["role_source"], r["bracket_id"] = role, source, None
+            if not r["_file_error"]:
+                r["status"] = "ok"
+                r["message"] = f"{problem} (session ingested without it)" if problem else ""
+        summary.brackets += ing.assign_brackets(members, bracket_gap_s)
+        for r in members:  # content detection for what is still undecided
+            if r["role_source"] != "none" or r["status"] != "ok":
+                continue
+            role = r["_content_role"]
+            if role is None and detector is not None:
+                try:
+                    role = detector(root / r["path"], r["kind"])
+                except Exception as exc:  # a preview that cannot be decoded: say so, go on
+                    r["message"] = f"{root / r['path']}: role detection failed ({exc})"
+            if role is not None:
+                r["role"], r["role_source"] = role, "detected"

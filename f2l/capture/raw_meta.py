@@ -1,0 +1,420 @@
+"""Camera RAW files: metadata, the visible Bayer mosaic, CFA helpers; one clear error type.
+
+Conventions:
+
+- EXIF (exposure, aperture, ISO, time, camera, lens, focal length, orientation, GPS, DNG colour
+  matrices) comes from ``exifread`` (:func:`exif_fields`, no pixel decode, about 1 ms); ``rawpy``
+  (LibRaw) supplies the sensor layout: visible size, black levels, white level, CFA pattern. LibRaw
+  reports the layout only after decoding the pixels (a Canon black level is measured on masked
+  pixels), so :func:`read_raw` returns metadata and mosaic from one decode. Where EXIF lacks
+  exposure, aperture, ISO or time, LibRaw's own parse (``RawPy.other``, rawpy >= 0.25) fills in.
+- ``black_levels`` are per 2x2 CFA position in row-major order (top-left, top-right, bottom-left,
+  bottom-right of the visible mosaic), ``cfa_pattern`` names the colours at those positions
+  (``"RGGB"``); a non-2x2 layout (X-Trans) gives its full pattern, row-major.
+- Exposure factor ``e = t * (ISO / 100) / N**2`` (t in seconds, N the f-number), ``EV100 =
+  -log2(e)``; ``(raw - black) / (white - black) / e`` is then independent of the exposure
+  settings (see :mod:`f2l.capture.merge`).
+- ``timestamp`` is DateTimeOriginal (else DateTime) plus SubSecTimeOriginal; it is timezone-aware
+  only when the file records OffsetTimeOriginal, otherwise naive camera-local time.
+- ``xyz_to_camera`` is the DNG ColorMatrix for the D65 calibration (ColorMatrix2 when
+  CalibrationIlluminant2 is D65, else ColorMatrix1), or LibRaw's built-in table for other formats:
+  the 3x3 matrix taking CIE XYZ to camera RGB, row-major; ``None`` when unknown.
+- Missing, empty, truncated or undecodable files raise ``RawError(f"{path}: reason")``, never a
+  bare LibRaw exception. LibRaw silently zero-fills truncated TIFF-based files (DNG, CR2, NEF,
+  ARW...), so the strip/tile extents recorded in every IFD are checked against the file size.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+
+__all__ = [
+    "RawError", "RawMeta", "RawFrame", "raw_frame", "exif_fields", "read_raw", "read_raw_metadata",
+    "read_raw_mosaic", "bayer_mosaic", "quad_mean", "demosaic_bilinear", "camera_to_rec709", "BAYER_PATTERNS",
+    "XYZ_TO_REC709",
+]  # fmt: skip
+
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+"""2x2 Bayer layouts, colours of the top-left, top-right, bottom-left, bottom-right samples."""
+_COLOUR_INDEX = {"R": 0, "G": 1, "B": 2}
+
+XYZ_TO_REC709 = np.array(
+    [[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560], [0.0556434, -0.2040259, 1.0572252]]
+)  # fmt: skip
+"""CIE XYZ (D65) to linear Rec.709/sRGB primaries (IEC 61966-2-1)."""
+
+_D65 = 21  # EXIF LightSource / DNG CalibrationIlluminant code
+
+
+class RawError(IOError):
+    """A RAW file could not be read; the message is ``f"{path}: reason"``."""
+
+
+@dataclass(frozen=True)
+class RawMeta:
+    """What one RAW frame records about itself (see the module docstring for conventions)."""
+
+    path: str
+    make: str
+    model: str
+    width: int
+    height: int
+    black_levels: tuple[float, float, float, float] | None
+    white_level: float | None
+    cfa_pattern: str | None
+    exposure_s: float | None = None
+    f_number: float | None = None
+    iso: float | None = None
+    timestamp: datetime | None = None
+    lens: str | None = None
+    focal_length_mm: float | None = None
+    orientation: int = 1
+    gps_latitude_deg: float | None = None
+    gps_longitude_deg: float | None = None
+    gps_altitude_m: float | None = None
+    xyz_to_camera: tuple[float, ...] | None = None
+
+    @property
+    def camera(self) -> str:
+        return f"{self.make} {self.model}".strip()
+
+    @property
+    def exposure_factor(self) -> float | None:
+        """``t * (ISO / 100) / N**2``; ``None`` when any of the three is unknown."""
+        if not (self.exposure_s and self.f_number and self.iso):
+            return None
+        return self.exposure_s * (self.iso / 100.0) / self.f_number**2
+
+    @property
+    def ev100(self) -> float | None:
+        e = self.exposure_factor
+        return None if e is None else -math.log2(e)
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """An already-decoded frame: the visible mosaic (H, W) uint16 and its metadata."""
+
+    mosaic: np.ndarray
+    meta: RawMeta
+
+
+def raw_frame(
+    mosaic: np.ndarray, *, exposure_s: float, f_number: float, iso: float, black_level=0, white_level: float = 65535,
+    cfa: str = "RGGB", name: str = "frame", make: str = "", model: str = "",
+) -> RawFrame:  # fmt: skip
+    """Wrap a decoded uint16 mosaic and its exposure settings as a :class:`RawFrame`."""
+    mosaic = np.asarray(mosaic)
+    blacks = (float(black_level),) * 4 if np.ndim(black_level) == 0 else tuple(float(b) for b in black_level)
+    meta = RawMeta(path=name, make=make, model=model, width=mosaic.shape[-1], height=mosaic.shape[0],
+                   black_levels=blacks, white_level=float(white_level), cfa_pattern=cfa,
+                   exposure_s=exposure_s, f_number=f_number, iso=iso)  # fmt: skip
+    return RawFrame(mosaic, meta)
+
+
+def _open_rawpy(path: str, unpack: bool):
+    import rawpy
+
+    try:
+        raw = rawpy.RawPy()
+        raw.open_file(path)
+        if unpack:
+            raw.unpack()
+        return raw
+    except rawpy.LibRawError as exc:
+        reason = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
+        raise RawError(f"{path}: not a readable RAW file ({type(exc).__name__}: {reason})") from exc
+
+
+def _check_file(path: str) -> int:
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise RawError(f"{path}: cannot open ({exc.strerror or exc})") from exc
+    if size == 0:
+        raise RawError(f"{path}: empty file (0 bytes)")
+    return size
+
+
+def _exif_tags(path: str) -> dict:
+    import exifread
+
+    try:
+        with open(path, "rb") as fh:
+            return exifread.process_file(fh, details=False, extract_thumbnail=False)
+    except Exception as exc:  # exifread raises assorted errors on malformed headers
+        raise RawError(f"{path}: malformed EXIF/TIFF header ({type(exc).__name__}: {exc})") from exc
+
+
+def _check_extents(path: str, tags: dict, size: int) -> None:
+    """Raise if any IFD's strips or tiles extend past the end of the file."""
+    for key in tags:
+        for kind in ("StripOffsets", "TileOffsets"):
+            if not key.endswith(" " + kind):
+                continue
+            counts = tags.get(key[: -len("Offsets")] + "ByteCounts")
+            if counts is None:
+                continue
+            ends = [int(o) + int(c) for o, c in zip(tags[key].values, counts.values)]
+            if ends and max(ends) > size:
+                raise RawError(f"{path}: truncated: image data needs {max(ends)} bytes, file has {size}")
+
+
+def _values(tags: dict, *names: str):
+    for name in names:
+        tag = tags.get(name)
+        if tag is not None and getattr(tag, "values", None) not in (None, "", []):
+            return tag.values
+    return None
+
+
+def _number(tags: dict, *names: str) -> float | None:
+    values = _values(tags, *names)
+    if values is None or isinstance(values, str):
+        return None
+    try:
+        value = float(values[0])
+    except (TypeError, ValueError, ZeroDivisionError, IndexError):
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def _text(tags: dict, *names: str) -> str | None:
+    values = _values(tags, *names)
+    if values is None:
+        return None
+    text = (values if isinstance(values, str) else str(values)).strip().strip("\x00").strip()
+    return text or None
+
+
+def _timestamp(tags: dict) -> datetime | None:
+    text = _text(tags, "EXIF DateTimeOriginal", "Image DateTimeOriginal", "Image DateTime")
+    if text is None:
+        return None
+    try:
+        stamp = datetime.strptime(text[:19], "%Y:%m:%d %H:%M:%S")
+    except ValueError:
+        return None
+    subsec = _text(tags, "EXIF SubSecTimeOriginal")
+    if subsec and subsec.isdigit():
+        stamp += timedelta(seconds=int(subsec) / 10 ** len(subsec))
+    offset = _text(tags, "EXIF OffsetTimeOriginal", "EXIF Tag 0x9011")
+    if offset and len(offset) == 6 and offset[0] in "+-" and offset[3] == ":":
+        try:
+            minutes = int(offset[1:3]) * 60 + int(offset[4:6])
+        except ValueError:
+            return stamp
+        stamp = stamp.replace(tzinfo=timezone(timedelta(minutes=minutes if offset[0] == "+" else -minutes)))
+    return stamp
+
+
+def _gps(tags: dict) -> tuple[float | None, float | None, float | None]:
+    def angle(name: str, ref_name: str, negative: str) -> float | None:
+        values = _values(tags, name)
+        if values is None or len(values) != 3:
+            return None
+        try:
+            deg = float(values[0]) + float(values[1]) / 60.0 + float(values[2]) / 3600.0
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+        ref = _text(tags, ref_name) or ""
+        return -deg if ref.upper().startswith(negative) else deg
+
+    altitude = _number(tags, "GPS GPSAltitude")
+    ref = _values(tags, "GPS GPSAltitudeRef")
+    if altitude is not None and ref is not None and not isinstance(ref, str) and int(ref[0]) == 1:
+        altitude = -altitude
+    latitude = angle("GPS GPSLatitude", "GPS GPSLatitudeRef", "S")
+    return latitude, angle("GPS GPSLongitude", "GPS GPSLongitudeRef", "W"), altitude
+
+
+def _dng_matrix(tags: dict) -> tuple[float, ...] | None:
+    illum2 = _values(tags, "Image CalibrationIlluminant2", "Image Tag 0xC65B")
+    names = [("Image ColorMatrix1", "Image Tag 0xC621")]
+    if illum2 is not None and not isinstance(illum2, str) and int(illum2[0]) == _D65:
+        names.insert(0, ("Image ColorMatrix2", "Image Tag 0xC622"))
+    for pair in names:
+        values = _values(tags, *pair)
+        if values is not None and not isinstance(values, str) and len(values) == 9:
+            try:
+                return tuple(float(v) for v in values)
+            except (TypeError, ValueError, ZeroDivisionError):
+                pass
+    return None
+
+
+def exif_fields(path: str | os.PathLike) -> dict:
+    """The EXIF part of :class:`RawMeta` (no pixel decode, about a millisecond), as a dict.
+
+    Checks the file is non-empty, has a parsable header and is not truncated (RawError otherwise).
+    Fields EXIF lacks are ``None``; :func:`read_raw` fills them from LibRaw where it can.
+    """
+    return _exif(os.fspath(path))[0]
+
+
+def _exif(path: str) -> tuple[dict, dict]:
+    size = _check_file(path)
+    tags = _exif_tags(path)
+    _check_extents(path, tags, size)
+    orientation = _values(tags, "Image Orientation")
+    latitude, longitude, altitude = _gps(tags)
+    return {
+        "make": _text(tags, "Image Make") or "", "model": _text(tags, "Image Model") or "",
+        "exposure_s": _number(tags, "EXIF ExposureTime", "Image ExposureTime"),
+        "f_number": _number(tags, "EXIF FNumber", "Image FNumber"),
+        "iso": _number(tags, "EXIF ISOSpeedRatings", "Image ISOSpeedRatings", "EXIF PhotographicSensitivity"),
+        "timestamp": _timestamp(tags), "lens": _text(tags, "EXIF LensModel", "Image EXIFPhotoLensModel"),
+        "focal_length_mm": _number(tags, "EXIF FocalLength", "Image FocalLength"),
+        "orientation": int(orientation[0]) if orientation and not isinstance(orientation, str) else 1,
+        "gps_latitude_deg": latitude, "gps_longitude_deg": longitude, "gps_altitude_m": altitude,
+        "xyz_to_camera": _dng_matrix(tags),
+    }, tags  # fmt: skip
+
+
+def read_raw(
+    path: str | os.PathLike, *, exif: dict | None = None, mosaic: bool = True
+) -> tuple[RawMeta, np.ndarray | None]:
+    """Metadata and visible mosaic ((height, width) uint16, exactly as stored) with one decode.
+
+    LibRaw decodes the pixels before it reports levels or the CFA, so metadata costs a decode too.
+    ``exif`` reuses an :func:`exif_fields` result for the same file.
+    """
+    path = os.fspath(path)
+    fields = dict(_exif(path)[0] if exif is None else exif)
+    raw = _open_rawpy(path, unpack=True)
+    try:
+        pattern = np.asarray(raw.raw_pattern)
+        desc = raw.color_desc.decode(errors="replace")
+        cfa = "".join(desc[int(i)] if int(i) < len(desc) else "?" for i in pattern.ravel())
+        per_channel = list(raw.black_level_per_channel)
+        blacks = [float(per_channel[int(i)]) for i in pattern.ravel()[:4]] if pattern.shape == (2, 2) else [
+            float(np.mean(per_channel))] * 4  # fmt: skip
+        other = getattr(raw, "other", None)  # rawpy >= 0.25: LibRaw's own EXIF parse
+        if other is not None:
+            libraw = {"exposure_s": other.shutter_speed, "f_number": other.aperture, "iso": other.iso_speed}
+            for key, value in libraw.items():
+                fields[key] = fields[key] or (float(value) if value > 0 else None)
+            fields["timestamp"] = fields["timestamp"] or getattr(other, "timestamp", None)
+        lens_info = getattr(raw, "lens", None)
+        fields["lens"] = fields["lens"] or (lens_info.model if lens_info and lens_info.model else None)
+        if fields["xyz_to_camera"] is None:
+            matrix = np.asarray(raw.rgb_xyz_matrix, dtype=float)[:3]
+            fields["xyz_to_camera"] = tuple(float(v) for v in matrix.ravel()) if np.any(matrix) else None
+        meta = RawMeta(path=path, width=int(raw.sizes.width), height=int(raw.sizes.height), black_levels=tuple(blacks),
+                       white_level=float(raw.white_level), cfa_pattern=cfa, **fields)  # fmt: skip
+        pixels = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True) if mosaic else None
+    except RawError:
+        raise
+    except Exception as exc:
+        raise RawError(f"{path}: cannot decode ({type(exc).__name__}: {exc})") from exc
+    finally:
+        raw.close()
+    if pixels is not None and (pixels.ndim != 2 or pixels.shape != (meta.height, meta.width)):
+        raise RawError(f"{path}: not a single-plane CFA mosaic of its stated size (shape {pixels.shape})")
+    return meta, pixels
+
+
+def read_raw_metadata(path: str | os.PathLike, *, levels: bool = True) -> RawMeta:
+    """Exposure, camera and sensor-layout metadata of one RAW file (conventions above).
+
+    LibRaw reports black/white levels and the CFA only after decoding the pixels (a Canon black
+    level is measured on masked pixels), so this costs a decode. ``levels=False`` skips it (about a
+    millisecond): the size comes from LibRaw's header, CFA and levels from DNG tags when the file
+    has them, else ``None``; exposure, aperture and ISO then come from EXIF alone.
+    """
+    if levels:
+        return read_raw(path, mosaic=False)[0]
+    path = os.fspath(path)
+    fields, tags = _exif(path)
+    raw = _open_rawpy(path, unpack=False)
+    try:
+        width, height = int(raw.sizes.width), int(raw.sizes.height)
+    finally:
+        raw.close()
+    cfa, blacks = _values(tags, "Image CFAPattern"), _values(tags, "Image BlackLevel")
+    try:
+        cfa = "".join("RGB"[int(c)] for c in cfa) if cfa and not isinstance(cfa, str) and len(cfa) == 4 else None
+        ok = blacks is not None and not isinstance(blacks, str) and len(blacks) in (1, 4)
+        blacks = tuple(float(b) for b in list(blacks) * (4 // len(blacks))) if ok else None
+    except (TypeError, ValueError, IndexError, ZeroDivisionError):
+        cfa, blacks = None, None
+    return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=_number(
+        tags, "Image WhiteLevel", "Image Tag 0xC61D"), cfa_pattern=cfa, **fields)  # fmt: skip
+
+
+def read_raw_mosaic(path: str | os.PathLike) -> np.ndarray:
+    """The visible Bayer mosaic, (height, width) uint16, exactly as stored (no scaling)."""
+    return read_raw(path)[1]
+
+
+def bayer_mosaic(rgb: np.ndarray, cfa: str = "RGGB") -> np.ndarray:
+    """Sample an (H, W, 3) image on a 2x2 Bayer pattern; returns (H, W) of the same dtype."""
+    if cfa not in BAYER_PATTERNS:
+        raise ValueError(f"cfa must be one of {BAYER_PATTERNS}, got {cfa!r}")
+    rgb = np.asarray(rgb)
+    out = np.empty(rgb.shape[:2], dtype=rgb.dtype)
+    for k, letter in enumerate(cfa):
+        dy, dx = divmod(k, 2)
+        out[dy::2, dx::2] = rgb[dy::2, dx::2, _COLOUR_INDEX[letter]]
+    return out
+
+
+def demosaic_bilinear(mosaic: np.ndarray, cfa: str = "RGGB") -> np.ndarray:
+    """Bilinear demosaic of an (H, W) Bayer mosaic (H, W even) to (H, W, 3) float32 RGB.
+
+    Each missing colour is the mean of its nearest same-colour samples (2 or 4), mirroring at the
+    borders; known samples are kept exactly. Other patterns are mirror-padded to RGGB.
+    """
+    if cfa not in BAYER_PATTERNS:
+        raise ValueError(f"cfa must be one of {BAYER_PATTERNS}, got {cfa!r}")
+    m = np.asarray(mosaic, dtype=np.float32)
+    if m.ndim != 2 or m.shape[0] % 2 or m.shape[1] % 2:
+        raise ValueError(f"mosaic must be 2-D with even sides, got shape {m.shape}")
+    oy, ox = divmod(cfa.index("R"), 2)
+    if oy or ox:
+        padded = np.pad(m, ((oy, oy), (ox, ox)), mode="reflect")
+        return demosaic_bilinear(padded, "RGGB")[oy : oy + m.shape[0], ox : ox + m.shape[1]]
+    r, g1, g2, b = m[0::2, 0::2], m[0::2, 1::2], m[1::2, 0::2], m[1::2, 1::2]
+    h, w = r.shape
+    out = np.empty((h, 2, w, 2, 3), np.float32)
+    half = np.float32(0.5)
+    rp = np.pad(r, ((0, 1), (0, 1)), mode="edge")
+    rh = (rp[:, :-1] + rp[:, 1:]) * half
+    out[:, 0, :, 0, 0], out[:, 0, :, 1, 0] = r, rh[:-1]
+    out[:, 1, :, 0, 0], out[:, 1, :, 1, 0] = (rp[:-1, :-1] + rp[1:, :-1]) * half, (rh[:-1] + rh[1:]) * half
+    bp = np.pad(b, ((1, 0), (1, 0)), mode="edge")
+    bh = (bp[:, :-1] + bp[:, 1:]) * half
+    out[:, 1, :, 1, 2], out[:, 1, :, 0, 2] = b, bh[1:]
+    out[:, 0, :, 1, 2], out[:, 0, :, 0, 2] = (bp[:-1, 1:] + bp[1:, 1:]) * half, (bh[:-1] + bh[1:]) * half
+    g1p, g2p = np.pad(g1, ((0, 1), (1, 0)), mode="edge"), np.pad(g2, ((1, 0), (0, 1)), mode="edge")
+    quarter = np.float32(0.25)
+    out[:, 0, :, 1, 1], out[:, 1, :, 0, 1] = g1, g2
+    out[:, 0, :, 0, 1] = (g1p[:-1, :-1] + g1p[:-1, 1:] + g2p[:-1, :-1] + g2p[1:, :-1]) * quarter
+    out[:, 1, :, 1, 1] = (g2p[1:, :-1] + g2p[1:, 1:] + g1p[:-1, 1:] + g1p[1:, 1:]) * quarter
+    return out.reshape(2 * h, 2 * w, 3)
+
+
+def quad_mean(mosaic: np.ndarray) -> np.ndarray:
+    """Mean of each 2x2 CFA quad of a (2h, 2w) mosaic, (h, w), in the mosaic's float dtype."""
+    rows = mosaic.reshape(mosaic.shape[0] // 2, 2, mosaic.shape[1])
+    pair = rows[:, 0] + rows[:, 1]
+    return (pair[:, 0::2] + pair[:, 1::2]) * pair.dtype.type(0.25)
+
+
+def camera_to_rec709(rgb: np.ndarray, xyz_to_camera: np.ndarray) -> np.ndarray:
+    """Camera RGB (..., 3) -> linear Rec.709 through XYZ, float32, negatives (out of gamut) clipped.
+
+    ``xyz_to_camera`` (3x3) is first scaled so that D65 white (Y = 1) maps to a camera neutral with
+    maximum 1, as the DNG specification normalises ColorMatrix; no white balance is applied, so the
+    result stays radiometric (a blue sky stays blue).
+    """
+    xyz_to_camera = np.asarray(xyz_to_camera, dtype=np.float64).reshape(3, 3)
+    white = xyz_to_camera @ np.linalg.solve(XYZ_TO_REC709, np.ones(3))
+    matrix = (XYZ_TO_REC709 @ np.linalg.inv(xyz_to_camera / white.max())).astype(np.float32)
+    out = np.asarray(rgb, dtype=np.float32).reshape(-1, 3) @ matrix.T
+    return np.maximum(out, 0, out=out).reshape(np.shape(rgb))
