@@ -131,8 +131,10 @@ def estimate(
     shards: list[Path] = typer.Argument(..., help="Shard directories or .parquet files."),
     model: list[str] = typer.Option(..., "--model", "-m", help="Lighting model name (repeatable)."),
     out: Path = typer.Option(..., "--out", help="Output directory (estimates.parquet, probes/, previews/)."),
-    workers: int = typer.Option(1, help="Parallel worker processes."),
+    workers: Optional[int] = typer.Option(None, help="Parallel workers (default: cores // threads)."),
     threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
+    executor: str = typer.Option("local", help="local (a process pool on this machine) or ray (Ray Data; needs the 'ray' extra)."),
+    address: Optional[str] = typer.Option(None, help="Ray cluster address for --executor ray (default: start a local Ray with --workers CPUs)."),
     max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
     max_iter: int = typer.Option(18, help="L-BFGS iterations of non-linear models (sunsky: all phases together)."),
     sun_prior: bool = typer.Option(
@@ -141,22 +143,26 @@ def estimate(
              "the record's meta 'capture'); sun models only. The heading is unknown: azimuth stays free."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Estimate an HDR probe for every face record with the given lighting model(s)."""
+    """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
+    faces already estimated with the same model, version and settings."""
     from f2l.estimate.runner import run_estimates
     from f2l.models.registry import ModelNotFoundError
 
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
         _fail(f"no such shard path: {', '.join(missing)}")
+    if executor not in ("local", "ray"):
+        raise typer.BadParameter("must be local or ray", param_hint="--executor")
     try:
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
-            max_iter=max_iter, progress=not json_out, sun_prior=sun_prior,
+            max_iter=max_iter, progress=not json_out, sun_prior=sun_prior, executor=executor,
+            ray_address=address,
         )
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if summary["ok"] == 0 and summary["total"] > 0:
+    if summary["ok"] == 0 and summary["total"] > 0 and not summary["skipped_done"]:
         raise typer.Exit(code=1)
 
 
@@ -409,11 +415,29 @@ def bench_faces_cmd(
 # stages with a CLI module of their own
 from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
+from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
 
 app.command("ingest")(ingest_cmd)
 app.command("make-probes")(make_probes_cmd)
 app.command("bench-capture")(bench_capture_cmd)
 app.command("calibrate")(calibrate_cmd)
+app.command("build-dataset")(build_dataset_cmd)
+
+
+@app.command("scale-report")
+def scale_report_cmd(
+    faces: list[int] = typer.Option([10, 200], "--faces", help="Dataset sizes (repeatable)."),
+    model: str = typer.Option("sh9", "--model", "-m", help="Lighting model to estimate with."),
+    image_size: int = typer.Option(96, help="Synthetic photo size in pixels."),
+    grid: str = typer.Option("32x64", help="Lighting grid HxW."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+) -> None:
+    """Build and estimate synthetic datasets of several sizes: faces/minute, per-stage time, peak memory."""
+    from f2l.estimate.scale import format_table, run_scale_report
+
+    g = _grid(grid)
+    rows = run_scale_report(tuple(faces), model=model, image_size=image_size, grid=(g.height, g.width))
+    typer.echo(json.dumps(rows) if json_out else format_table(rows))
 
 
 def main() -> None:

@@ -17,8 +17,9 @@ pycolmap 4.2.1 behaviour relied on (checked by experiment, see tests/test_captur
 - ``Camera.img_from_cam(points (N, 3))`` -> (N, 2); with the default ``check_cheirality=True`` rows
   with z < machine epsilon are NaN (the single-point overload returns None instead). Without the
   check, points behind the camera are mirrored to wrong pixels.
-- The fisheye models (OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE)
-  project through (x/z, y/z), so they represent at most a hemisphere: field of view <= 180 deg.
+- The fisheye models (OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE,
+  and 4.x's FISHEYE / SIMPLE_FISHEYE) project through (x/z, y/z), so they represent at most a
+  hemisphere: field of view <= 180 deg, and exactly 90 deg off-axis (z = 0) is already invalid.
 - ``Camera.cam_from_img(pixels (N, 2))`` -> normalised (x/z, y/z). For the fisheye models a pixel
   beyond theta_d = pi/2 silently returns the distorted coordinates (a wrong ray, no NaN), so every
   unprojection here is validated by reprojection (residual < 1e-3 px); projections are likewise
@@ -114,6 +115,15 @@ class _Oriented:
         d, valid = self.pixel_to_cam_direction(pixels)
         return d @ self.rotation.T, valid
 
+    def valid_pixel_mask(self) -> np.ndarray:
+        """(height, width) bool: pixels whose centre maps to a valid direction (inside a fisheye's
+        image circle, a mirror ball's silhouette, ...)."""
+        y, x = np.mgrid[0 : self.height, 0 : self.width] + 0.5
+        px = np.stack([x.ravel(), y.ravel()], axis=1)
+        rows = max(1, (1 << 19) // self.width) * self.width  # bounded memory per call
+        ok = np.concatenate([self.pixel_to_cam_direction(px[i : i + rows])[1] for i in range(0, len(px), rows)])
+        return ok.reshape(self.height, self.width)
+
     def _inside(self, px: np.ndarray) -> np.ndarray:
         x, y = px[:, 0], px[:, 1]
         with np.errstate(invalid="ignore"):
@@ -164,11 +174,6 @@ class ViewCamera(_Oriented):
         """The wrapped ``pycolmap.Camera``."""
         return pycolmap.Camera(model=self.model, width=int(self.width), height=int(self.height),
                                params=list(self.params))
-
-    @property
-    def pixel_angle_rad(self) -> float:
-        """Angular size of a pixel at the principal point, 1 / mean focal length (rad)."""
-        return 1.0 / float(self.colmap.mean_focal_length())
 
     # -- constructors (degrees) -----------------------------------------------------------
     @classmethod
@@ -348,12 +353,6 @@ class MirrorBallCamera(_Oriented):
         """Largest valid reflection angle from +Z (toward the camera)."""
         psi = float(self.psi_of_s(np.array([self.s_max]))[0])
         return psi if self.max_reflection_rad is None else min(psi, self.max_reflection_rad)
-
-    @property
-    def pixel_angle_rad(self) -> float:
-        """Angular size of a pixel at the ball centre, dpsi/ds / radius_px."""
-        eps = 1e-4
-        return float(self.psi_of_s(np.array([eps]))[0] / eps / self.radius_px)
 
     def psi_of_s(self, s: np.ndarray) -> np.ndarray:
         """Reflection angle psi (rad, from +Z) of normalised silhouette radius s in [0, 1]."""

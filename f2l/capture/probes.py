@@ -154,17 +154,71 @@ def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
     return row, View(image=rgb, camera=camera, saturated=saturated, name=bid)
 
 
+def merge_bracket_view(root: str | os.PathLike, out_dir: str | os.PathLike, bracket_id: str,
+                       frames: list[dict], view_max_side: int = 1024) -> tuple[dict, object | None]:
+    """Merge one bracket (its ``captures`` rows, any order) into ``out_dir/views/<bracket>.exr``
+    and ``.saturated.png``; returns (the ``probes`` row, the placed
+    :class:`~f2l.capture.sphere.View` or None when it failed or has no lens model)."""
+    (Path(out_dir) / "views").mkdir(parents=True, exist_ok=True)
+    frames = sorted(frames, key=lambda f: f["path"])
+    return _merge_one(Path(root), Path(out_dir), bracket_id, frames, view_max_side)
+
+
+def load_view(out_dir: str | os.PathLike, row: dict, view_json: str):
+    """The placed :class:`~f2l.capture.sphere.View` of a merged bracket from its files under
+    ``out_dir`` (``row`` from :func:`merge_bracket_view`, status ``ok``) and the ``view_json`` of
+    its frames; ValueError when the row has no lens model."""
+    from f2l.capture.sphere import View
+    from f2l.io.exr import read_exr
+
+    out_dir = Path(out_dir)
+    rgb = read_exr(out_dir / row["path"])
+    saturated = _read_mask_png(out_dir / row["path"].replace(".exr", ".saturated.png"))
+    camera = camera_for(json.loads(view_json or "{}"), rgb.shape[1], rgb.shape[0])
+    return View(image=rgb, camera=camera, saturated=saturated, name=row["name"])
+
+
+def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid_height: int = 64,
+                     grid_width: int = 128) -> dict:
+    """Blend one session's placed views into ``out_dir/probes/<session>.exr`` (+ coverage PNG);
+    returns its ``probes`` row (status ``error`` with the reason when assembly fails)."""
+    from f2l.capture.sphere import assemble
+    from f2l.io.exr import write_exr
+    from f2l.lighting.grid import LatLongGrid
+    from f2l.metrics.lighting import sun_direction
+
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    try:
+        probe = assemble(views, grid_height, grid_width)
+    except ValueError as exc:
+        return _row("probe", session, session, "error", str(exc))
+    grid = LatLongGrid(grid_height, grid_width)
+    rel = f"probes/{_safe(session)}.exr"
+    (out_dir / "probes").mkdir(parents=True, exist_ok=True)
+    write_exr(out_dir / rel, probe.radiance, metadata={"f2l_session": session,
+                                                       "f2l_views": str(len(views))})
+    _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
+    sa = grid.solid_angles.reshape(grid.height, grid.width)
+    coverage = float((sa * probe.coverage).sum() / sa.sum())
+    elev = azim = None
+    if probe.coverage[: grid.height // 2].any():
+        d = sun_direction(probe.radiance, grid)
+        elev = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
+        azim = math.degrees(math.atan2(float(d[0]), float(-d[2])))
+    return _row("probe", session, session, "ok", "", path=rel, frames=len(views),
+                saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
+                coverage_fraction=coverage, sun_elevation_deg=elev, sun_azimuth_deg=azim,
+                seconds=round(time.perf_counter() - t0, 3))
+
+
 def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 64,
                 grid_width: int = 128, view_max_side: int = 1024,
                 progress: bool = False) -> ProbesSummary:
     """Run the merge and sphere stages for every session of ``work/captures.parquet``."""
     import pyarrow.parquet as pq
 
-    from f2l.capture.sphere import assemble
-    from f2l.io.exr import write_exr
     from f2l.io.tables import rows_to_table, write_table_atomic
-    from f2l.lighting.grid import LatLongGrid
-    from f2l.metrics.lighting import sun_direction
 
     t_start = time.perf_counter()
     root, work = Path(root), Path(work)
@@ -193,31 +247,10 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
         if view is not None:
             summary.views += 1
             by_session.setdefault(frames[0]["session"], []).append(view)
-    grid = LatLongGrid(grid_height, grid_width)
     for session, views in sorted(by_session.items()):
-        t0 = time.perf_counter()
-        try:
-            probe = assemble(views, grid_height, grid_width)
-        except ValueError as exc:
-            summary.rows.append(_row("probe", session, session, "error", str(exc)))
-            continue
-        rel = f"probes/{_safe(session)}.exr"
-        write_exr(work / rel, probe.radiance, metadata={"f2l_session": session,
-                                                         "f2l_views": str(len(views))})
-        _write_mask_png(work / rel.replace(".exr", ".coverage.png"), probe.coverage)
-        sa = grid.solid_angles.reshape(grid.height, grid.width)
-        coverage = float((sa * probe.coverage).sum() / sa.sum())
-        elev = azim = None
-        if probe.coverage[: grid.height // 2].any():
-            d = sun_direction(probe.radiance, grid)
-            elev = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
-            azim = math.degrees(math.atan2(float(d[0]), float(-d[2])))
-        summary.rows.append(_row(
-            "probe", session, session, "ok", "", path=rel, frames=len(views),
-            saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
-            coverage_fraction=coverage, sun_elevation_deg=elev, sun_azimuth_deg=azim,
-            seconds=round(time.perf_counter() - t0, 3)))
-        summary.probes += 1
+        row = assemble_session(session, views, work, grid_height, grid_width)
+        summary.rows.append(row)
+        summary.probes += row["status"] == "ok"
     for r in captures:  # already-merged probes
         if r["role"] == "probe" and r["kind"] == "hdr":
             summary.rows.append(_row("given", r["path"], r["session"], r["status"], r["message"],

@@ -1,27 +1,25 @@
 """Sphere assembly: HDR views (linear float32 RGB) <-> lat-long probes in the DESIGN convention.
 
-A camera is any mapping with the interface of :class:`~f2l.capture.cameras.ViewCamera` /
-:class:`~f2l.capture.cameras.MirrorBallCamera`: ``width``, ``height``, ``rotation``
-(world_from_camera), ``cam_direction_to_pixel``, ``pixel_to_cam_direction``, ``blend_weight``,
-``pixel_angle_rad``, ``radiance_gain`` (image = gain * radiance) and ``with_rotation``.
-Pixel coordinates follow COLMAP (pixel (i, j) spans [j, j+1] x [i, i+1]).
+Cameras are :class:`~f2l.capture.cameras.ViewCamera` or :class:`~f2l.capture.cameras.MirrorBallCamera`
+(or anything with their interface: ``width``, ``height``, ``rotation``, ``cam_direction_to_pixel``,
+``pixel_to_cam_direction``, ``blend_weight``, ``radiance_gain``, ``with_rotation``); pixel
+coordinates follow COLMAP (pixel (i, j) spans [j, j+1] x [i, i+1]).
 
-- :func:`render_view` averages s x s subpixel rays per pixel over the probe (piecewise constant
-  per texel), so a sun of a few texels keeps its energy.
-- :func:`assemble` splats every view into the grid: the view is reduced to weighted 2^L x 2^L
-  pixel boxes (about half a texel across; views coarser than the grid are split into s x s
-  bilinear sub-pixels instead), each carrying its solid angle Omega = |dd/dx x dd/dy| x pixel
-  area x weight to the texel containing its direction. Per view and texel L_v = sum(Omega I) /
-  sum(Omega) -- the exact area average, so the sun keeps its energy at any view resolution -- and
-  W_v = sum(Omega b) / texel solid angle, b = ``blend_weight`` (1 at the view centre, 0 at the
-  edge of its valid region). Views are blended as sum(W_v L_v) / sum(W_v). Pixels outside a
-  camera's valid region (fisheye image circle, mirror-ball silhouette) or of weight 0 never count.
-  A view whose splats in a texel include a saturated pixel only gives a lower bound there: lower
-  bounds are never averaged with measurements; a texel with lower bounds only keeps their
-  maximum and is flagged ``saturated``. Directions no view sees are 0 and False in ``coverage``.
-- :func:`refine_rotations` fixes one view and solves for small world-frame rotations of the
-  others minimising robust log-luminance differences at shared directions (scipy least_squares,
-  coarse-to-fine Gaussian blur).
+- :func:`render_view`: each pixel averages s x s subpixel rays over the probe (piecewise constant
+  per texel), times ``camera.radiance_gain``.
+- :func:`assemble` splats each view: weighted 2^L x 2^L pixel boxes (about a quarter texel; views
+  coarser than the grid are cut into s x s bilinear sub-pixels) carry their solid angle
+  Omega = |dd/dx x dd/dy| x area x weight into the texels as boxes in the equal-area coordinates
+  (theta, cos phi) with exact overlap fractions. Per view and texel L_v = sum(Omega I) / sum(Omega)
+  (an area average; the view's energy is kept, so the sun keeps its energy at any resolution)
+  and W_v = sum(Omega b) / texel solid angle, b = ``blend_weight`` (1 at the view centre, 0 at
+  the edge of its valid region). Views blend as sum(W_v L_v) / sum(W_v). Pixels outside a camera's
+  valid region (fisheye image circle, mirror-ball silhouette) or of weight 0 never count. Where a
+  view's splats include a saturated pixel it gives only a lower bound, never averaged with
+  measurements: a texel with lower bounds only keeps their maximum and is flagged ``saturated``.
+  Directions no view sees are 0 and False in ``coverage`` (never invented).
+- :func:`refine_rotations`: small world-frame rotations of all views but one minimising robust
+  log-luminance differences at shared directions (scipy least_squares, coarse to fine).
 """
 
 from __future__ import annotations
@@ -32,7 +30,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.ndimage import gaussian_filter, uniform_filter1d
+from scipy.ndimage import gaussian_filter
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -51,8 +49,9 @@ _CHUNK_SAMPLES = 1 << 19
 @dataclass(frozen=True, eq=False)
 class View:
     """One HDR view: ``image`` (h, w, 3) linear radiance, its ``camera``, an optional per-pixel
-    ``weight`` (h, w) in [0, 1] (0 = unusable, e.g. outside the image circle) and an optional
-    ``saturated`` (h, w) bool mask (the merged value is only a lower bound there)."""
+    ``weight`` (h, w) in [0, 1] (usable fraction / confidence of the pixel, scaling its solid
+    angle; 0 = never used) and an optional ``saturated`` (h, w) bool mask from the merge (the
+    value there is only a lower bound). Tuples (image, camera[, weight[, saturated]]) also work."""
 
     image: np.ndarray
     camera: Any
@@ -77,6 +76,8 @@ class ViewStats:
 
 @dataclass(frozen=True, eq=False)
 class AssembledProbe:
+    """Result of :func:`assemble` on ``grid`` (row 0 = zenith, centre column = -Z)."""
+
     radiance: np.ndarray  # (H, W, 3) float32; 0 where not covered
     coverage: np.ndarray  # (H, W) bool: some view saw the texel
     saturated: np.ndarray  # (H, W) bool: only saturated pixels saw it; radiance is a lower bound
@@ -87,6 +88,8 @@ class AssembledProbe:
 
 @dataclass(frozen=True, eq=False)
 class RotationRefinement:
+    """Result of :func:`refine_rotations`; costs are 0.5 sum(residual^2) on the finest blur level."""
+
     views: tuple[View, ...]  # the input views with refined cameras
     correction_rotvec_rad: np.ndarray  # (n, 3): refined world_from_camera = exp([r]x) @ original
     initial_cost: float
@@ -123,20 +126,6 @@ def _bilinear(image: np.ndarray, weight: np.ndarray, saturated: np.ndarray | Non
     return value, wsum, sat
 
 
-def _lens_mask(camera) -> np.ndarray:
-    """(h, w) bool: pixels whose centre maps to a valid direction (e.g. inside a fisheye's image
-    circle or a mirror ball's silhouette); other pixels never contribute to an assembly."""
-    h, w = camera.height, camera.width
-    mask = np.zeros((h, w), dtype=bool)
-    step = max(1, _CHUNK_SAMPLES // w)
-    x = np.arange(w) + 0.5
-    for r0 in range(0, h, step):
-        y = np.arange(r0, min(h, r0 + step)) + 0.5
-        px = np.stack(np.broadcast_arrays(x[None, :], y[:, None]), axis=-1).reshape(-1, 2)
-        mask[r0 : r0 + len(y)] = camera.pixel_to_cam_direction(px)[1].reshape(len(y), w)
-    return mask
-
-
 def _as_view(item, index: int) -> View:
     v = item if isinstance(item, View) else View(*item)
     name = v.name or f"#{index}"
@@ -153,7 +142,7 @@ def _as_view(item, index: int) -> View:
     weight = np.ones(img.shape[:2], np.float32) if v.weight is None else np.asarray(v.weight, np.float32)
     if weight.shape != img.shape[:2] or not np.all(np.isfinite(weight)) or weight.min() < 0:
         raise ValueError(f"{label}: weight must be a finite, non-negative (h, w) array matching the image")
-    weight = weight * _lens_mask(cam)
+    weight = weight * cam.valid_pixel_mask()  # pixels outside the lens's valid region never count
     sat = None if v.saturated is None else np.asarray(v.saturated, dtype=bool)
     if sat is not None and sat.shape != img.shape[:2]:
         raise ValueError(f"{label}: saturated mask shape {sat.shape} does not match the image {img.shape[:2]}")
@@ -202,10 +191,10 @@ def render_view(probe_latlong: np.ndarray, camera, supersample: int = 4) -> tupl
 
 
 # -- assembly --------------------------------------------------------------------------------
-def _splat_plan(camera, grid: LatLongGrid, max_sub: int) -> tuple[int, int, float]:
-    """(pyramid level L, sub-splats per axis s, splat spacing in rad) so that splats are about
-    half a texel high: from the median angular pixel pitch p over the texels the view sees,
-    2^L = largest power of two with p 2^L <= pi / (2 H), else L = 0 and s = ceil(p / that)."""
+def _splat_plan(camera, grid: LatLongGrid, max_sub: int) -> tuple[int, int]:
+    """(box level L, sub-splats per axis s) so that splats are about a quarter texel high: from the
+    median angular pixel pitch p over the texels the view sees, 2^L = the largest power of two
+    with p 2^L <= pi / (4 H), else L = 0 and s = ceil(p H 4 / pi) (at most ``max_sub``)."""
     px = camera.direction_to_pixel(grid.directions_flat)[0].reshape(*grid.shape, 2)
     d = grid.directions
     pitches = []
@@ -215,16 +204,11 @@ def _splat_plan(camera, grid: LatLongGrid, max_sub: int) -> tuple[int, int, floa
             dist = np.linalg.norm(pa - pb, axis=-1)
         ok = np.isfinite(dist) & (dist > 0)
         pitches.append(np.arccos(np.clip(np.sum(da * db, axis=-1), -1.0, 1.0))[ok] / dist[ok])
-    pitch = np.concatenate(pitches)
-    target = math.pi / grid.height / 2.0
-    if pitch.size == 0:
-        return 0, 1, target
-    p = float(np.median(pitch))
+    pitch, target = np.concatenate(pitches), math.pi / grid.height / 4.0
+    p = float(np.median(pitch)) if pitch.size else target
     if p <= target:
-        level = min(int(math.floor(math.log2(target / p))), int(math.log2(min(camera.width, camera.height))))
-        return level, 1, p * 2.0**level
-    sub = min(max_sub, math.ceil(p / target))
-    return 0, sub, p / sub
+        return min(int(math.log2(target / p)), int(math.log2(min(camera.width, camera.height)))), 1
+    return 0, min(max_sub, math.ceil(p / target))
 
 
 def _jacobian(camera, pos: np.ndarray, d0: np.ndarray, eps: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
@@ -250,8 +234,8 @@ def _splats(v: View, level: int, sub: int):
     if sub > 1:
         off = (np.arange(sub) + 0.5) / sub
         rows, cols = np.nonzero(wt > 0)
-        pos = np.stack([(cols[:, None, None] + off[None, None, :]), (rows[:, None, None] + off[None, :, None])],
-                       axis=-1).reshape(-1, 2)
+        pos = np.stack(np.broadcast_arrays(cols[:, None, None] + off[None, None, :],
+                                           rows[:, None, None] + off[None, :, None]), axis=-1).reshape(-1, 2)
         val, _, sat = _bilinear(img, wt, v.saturated, pos)
         return pos, val, np.repeat(wt[rows, cols] / sub**2, sub * sub), sat
     b = 2**level
@@ -269,7 +253,7 @@ def _splats(v: View, level: int, sub: int):
 
 
 def _visible_texels(v: View, grid: LatLongGrid, n: int = 3) -> np.ndarray:
-    """(L,) bool: some of n x n sub-directions of the texel project to a usable pixel of the view."""
+    """(L,) fraction of n x n sub-directions of each texel that project to a usable view pixel."""
     i = (np.arange(n) + 0.5) / n
     phi = grid.phi_edges_rad[:-1, None] + (np.pi / grid.height) * i[None, :]
     theta = grid.theta_edges_rad[:-1, None] + (2 * np.pi / grid.width) * i[None, :]
@@ -279,7 +263,7 @@ def _visible_texels(v: View, grid: LatLongGrid, n: int = 3) -> np.ndarray:
     cols = np.clip(np.nan_to_num(px[:, 0]).astype(np.int64), 0, v.camera.width - 1)
     rows = np.clip(np.nan_to_num(px[:, 1]).astype(np.int64), 0, v.camera.height - 1)
     ok &= v.weight[rows, cols] > 0
-    return ok.reshape(grid.size, n * n).any(axis=1)
+    return ok.reshape(grid.size, n * n).mean(axis=1)
 
 
 def _overlaps(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray, start: np.ndarray, span: int, periodic: bool):
@@ -299,62 +283,67 @@ def _overlaps(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray, start: np.ndarr
     return cc, np.clip(np.minimum(hi[:, None], e1) - np.maximum(lo[:, None], e0), 0.0, None)
 
 
+def _splat_boxes(cam, pos: np.ndarray, area: np.ndarray, side_px: float):
+    """For splats at pixel ``pos`` covering ``area`` (px^2 x weight): (mask of those that map to a
+    valid direction, and for them: camera-frame direction, solid angle Omega = |dd/dx x dd/dy|
+    area, and the box (theta_lo, theta_hi, t_lo, t_hi) in (theta, t = -cos phi) of area Omega whose
+    extents are the RMS extents of the splat's Jacobian footprint, side ``side_px``)."""
+    d, ok = cam.pixel_to_cam_direction(pos)
+    jx, jy = _jacobian(cam, pos, d)
+    rot = cam.rotation
+    dw, jx, jy = d @ rot.T, jx @ rot.T, jy @ rot.T
+    omega_px = np.nan_to_num(np.linalg.norm(np.cross(jx, jy), axis=1))
+    ok &= omega_px > 0
+    x, y, z = dw[ok].T
+    jx, jy = jx[ok], jy[ok]
+    rho2 = np.maximum(x * x + z * z, 1e-12)  # dtheta = (-z dx + x dz) / (x^2 + z^2), dt = -dy
+    ext_th = side_px * np.hypot((-z * jx[:, 0] + x * jx[:, 2]) / rho2, (-z * jy[:, 0] + x * jy[:, 2]) / rho2)
+    ext_t = side_px * np.hypot(jx[:, 1], jy[:, 1])
+    scale = np.sqrt(omega_px[ok] * side_px**2 / np.maximum(ext_th * ext_t, 1e-300))  # box area = footprint area
+    ext_th, ext_t = np.minimum(scale * ext_th, 2 * np.pi), np.minimum(scale * ext_t, 2.0)
+    th, t = np.arctan2(x, -z), -y
+    return ok, d[ok], omega_px[ok] * area[ok], (th - ext_th / 2, th + ext_th / 2, t - ext_t / 2, t + ext_t / 2)
+
+
 def _accumulate(v: View, grid: LatLongGrid, level: int, sub: int):
     """Per-texel sums of one view: energy (L, 3) = sum(f Omega I), mass (L,) = sum(f Omega), blend
-    (L,) = sum(f Omega b), saturated (L,) bool, and its visible-texel mask.
+    (L,) = sum(f Omega b), saturated (L,) bool, and the fraction of each texel the view sees.
 
-    A splat (solid angle Omega = |dd/dx x dd/dy| x pixel area x weight) is an axis-aligned box in
-    the equal-area coordinates (theta, mu = cos phi), where texels are boxes too: its extents are
-    the RMS extents of its Jacobian footprint scaled to area Omega, and f are its exact overlap
-    fractions with the texels the view sees (renormalised to 1), so energy is kept exactly."""
+    A splat is an axis-aligned box in the equal-area coordinates (theta, cos phi), where texels are
+    boxes too (see ``_splat_boxes``); f are its exact overlap fractions with the texels the view
+    sees, renormalised to sum to 1, so the view's energy sum(Omega I) is kept exactly."""
     cam, size, H, W = v.camera, grid.size, grid.height, grid.width
     visible = _visible_texels(v, grid)
-    energy, mass, blend, sat_n = np.zeros((size, 3)), np.zeros(size), np.zeros(size), np.zeros(size)
+    seen = visible > 0
+    energy, mass, blend, sat_w = np.zeros((size, 3)), np.zeros(size), np.zeros(size), np.zeros(size)
     pos, val, area, sat = _splats(v, level, sub)
-    side_px = 2.0**level / sub
-    t_edges = -np.cos(grid.phi_edges_rad)  # t = -mu increases with the row index
-    c_edges = grid.theta_edges_rad
+    t_edges = -np.cos(grid.phi_edges_rad)  # increases with the row index
+    c_edges, c_width = grid.theta_edges_rad, 2 * np.pi / W
     for c0 in range(0, len(pos), _CHUNK_SAMPLES // 8):
         sl = slice(c0, c0 + _CHUNK_SAMPLES // 8)
-        p, value, ar, st = pos[sl], val[sl], area[sl], sat[sl]
-        d, ok = cam.pixel_to_cam_direction(p)
-        jx, jy = _jacobian(cam, p, d)
-        rot = cam.rotation
-        dw, jx, jy = d @ rot.T, jx @ rot.T, jy @ rot.T
-        omega = np.nan_to_num(np.linalg.norm(np.cross(jx, jy), axis=1)) * ar
-        ok &= omega > 0
-        dw, jx, jy, omega, p, value, st = dw[ok], jx[ok], jy[ok], omega[ok], p[ok], value[ok], st[ok]
-        x, y, z = dw.T
-        rho2 = np.maximum(x * x + z * z, 1e-12)
-        th_x, th_y = (-z * jx[:, 0] + x * jx[:, 2]) / rho2, (-z * jy[:, 0] + x * jy[:, 2]) / rho2
-        ext_th = side_px * np.hypot(th_x, th_y)
-        ext_t = side_px * np.hypot(jx[:, 1], jy[:, 1])
-        k = np.sqrt(omega / ar[ok] * side_px**2 / np.maximum(ext_th * ext_t, 1e-300))
-        ext_th, ext_t = np.minimum(k * ext_th, 2 * np.pi), np.minimum(k * ext_t, 2.0)
-        th_c, t_c = np.arctan2(x, -z), -y
-        t_lo, t_hi = t_c - ext_t / 2, t_c + ext_t / 2
+        ok, d, omega, (th_lo, th_hi, t_lo, t_hi) = _splat_boxes(cam, pos[sl], area[sl], 2.0**level / sub)
+        p, value, st = pos[sl][ok], val[sl][ok], sat[sl][ok]
+        bw = cam.blend_weight(d, p)
         r_start = np.clip(np.searchsorted(t_edges, t_lo, side="right") - 1, 0, H - 1)
-        th_lo, th_hi = th_c - ext_th / 2, th_c + ext_th / 2
-        c_start = np.floor((th_lo - c_edges[0]) / (2 * np.pi / W)).astype(np.int64)
-        n_rows = int(np.max(np.searchsorted(t_edges, t_hi, side="left") - r_start, initial=1)) + 1
+        n_rows = int(np.max(np.searchsorted(t_edges, t_hi) - r_start, initial=0)) + 1
         rows, f_r = _overlaps(t_lo, t_hi, t_edges, r_start, min(n_rows, H), periodic=False)
-        c_span = np.ceil(ext_th / (2 * np.pi / W)).astype(np.int64) + 1
-        for span in np.unique(np.minimum(2 ** np.ceil(np.log2(c_span)).astype(np.int64), W + 1)):
-            g = np.flatnonzero(np.minimum(2 ** np.ceil(np.log2(c_span)).astype(np.int64), W + 1) == span)
+        c_start = np.floor((th_lo - c_edges[0]) / c_width).astype(np.int64)
+        spans = np.minimum(2 ** np.ceil(np.log2(np.ceil((th_hi - th_lo) / c_width) + 1)), W + 1).astype(np.int64)
+        for span in np.unique(spans):  # splats grouped by the number of columns they may touch
+            g = np.flatnonzero(spans == span)
             cols, f_c = _overlaps(th_lo[g], th_hi[g], c_edges, c_start[g], int(span), periodic=True)
             idx = (rows[g][:, :, None] * W + cols[:, None, :]).reshape(len(g), -1)
-            f = (f_r[g][:, :, None] * f_c[:, None, :]).reshape(len(g), -1) * visible[idx]
+            f = (f_r[g][:, :, None] * f_c[:, None, :]).reshape(len(g), -1) * seen[idx]
             tot = f.sum(1)
-            keep = tot > 0
-            wgt = (f[keep] / tot[keep, None]) * omega[g][keep, None]
-            ii = idx[keep].ravel()
+            g, idx, f = g[tot > 0], idx[tot > 0], f[tot > 0] / tot[tot > 0, None]
+            wgt = f * omega[g, None]
+            ii = idx.ravel()
             for ch in range(3):
-                energy[:, ch] += np.bincount(ii, (wgt * value[g][keep, ch, None]).ravel(), size)
+                energy[:, ch] += np.bincount(ii, (wgt * value[g, ch, None]).ravel(), size)
             mass += np.bincount(ii, wgt.ravel(), size)
-            b = cam.blend_weight(d[ok][g][keep], p[g][keep])
-            blend += np.bincount(ii, (wgt * b[:, None]).ravel(), size)
-            sat_n += np.bincount(ii, (wgt * st[g][keep, None]).ravel(), size)
-    return energy, mass, blend, sat_n > 0, visible
+            blend += np.bincount(ii, (wgt * bw[g, None]).ravel(), size)
+            sat_w += np.bincount(ii, (wgt * st[g, None]).ravel(), size)
+    return energy, mass, blend, sat_w > 0, visible
 
 
 def assemble(views: Sequence, grid_height: int = 64, grid_width: int = 128, max_subsamples: int = 8) -> AssembledProbe:
@@ -375,10 +364,10 @@ def assemble(views: Sequence, grid_height: int = 64, grid_width: int = 128, max_
     view_sat = np.zeros((nv, size), dtype=bool)
     plans = []
     for k, v in enumerate(vs):
-        level, sub, _ = _splat_plan(v.camera, grid, int(max_subsamples))
+        level, sub = _splat_plan(v.camera, grid, int(max_subsamples))
         plans.append((level, sub))
         energy, mass, blend, sat, visible = _accumulate(v, grid, level, sub)
-        covered = visible & (mass > 0) & (blend > 0)
+        covered = (visible > 0) & (mass > 0) & (blend > 0)
         lv = energy[covered] / mass[covered, None] / v.camera.radiance_gain
         wv = blend[covered] / texel_sr[covered]
         st = sat[covered]
@@ -425,10 +414,8 @@ def _view_stats(vs, grid, plans, blend_y, measured, view_y, view_w, view_sat) ->
 # -- rotation refinement -----------------------------------------------------------------------
 def _fibonacci_sphere(n: int) -> np.ndarray:
     i = np.arange(n) + 0.5
-    y = 1.0 - 2.0 * i / n
-    r = np.sqrt(1.0 - y * y)
-    a = math.pi * (3.0 - math.sqrt(5.0)) * i
-    return np.stack([r * np.sin(a), y, -r * np.cos(a)], axis=1)
+    y, a = 1.0 - 2.0 * i / n, math.pi * (3.0 - math.sqrt(5.0)) * i
+    return np.stack([np.sqrt(1.0 - y * y) * np.sin(a), y, -np.sqrt(1.0 - y * y) * np.cos(a)], axis=1)
 
 
 def _log_luminance(v: View, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -448,7 +435,7 @@ def _log_luminance(v: View, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def refine_rotations(views: Sequence, *, fixed_index: int = 0, n_directions: int = 8000,
-                     blur_sigmas_px: Sequence[float] = (4.0, 1.0), max_correction_deg: float = 10.0,
+                     blur_sigmas_px: Sequence[float] = (8.0, 3.0), max_correction_deg: float = 10.0,
                      loss_scale: float = 0.1) -> RotationRefinement:
     """Refine the orientation of overlapping views (view ``fixed_index`` is held fixed).
 

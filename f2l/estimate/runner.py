@@ -1,9 +1,12 @@
 """Bulk estimation over face-record shards: ``f2l estimate``.
 
 Streams records (bounded memory: at most ``2 * workers`` records in flight), estimates each with
-every requested model in a worker process, writes the probe (float32 EXR) and a tone-mapped PNG
-preview per face and model, and appends one row per (face, model) to ``estimates.parquet``.
-A bad record or a failed estimate becomes a row with a status and a message; the rest go on.
+every requested model in a worker process (``executor="local"``, a process pool) or on a Ray
+cluster (``executor="ray"``, :mod:`f2l.estimate.ray_executor`), writes the probe (float32 EXR)
+and a tone-mapped PNG preview per face and model, and one row per (face, model) to
+``estimates.parquet``. A bad record or a failed estimate becomes a row with a status and a
+message; the rest go on. Runs resume: pairs already estimated with the same configuration are
+skipped, and a killed run keeps what it finished (:mod:`f2l.estimate.resume`).
 """
 
 from __future__ import annotations
@@ -168,33 +171,49 @@ def _init_worker(threads: int) -> None:
     torch_threads(threads)
 
 
+def default_workers(threads: int) -> int:
+    """Worker processes that fill the machine: cores // threads (at least 1)."""
+    return max(1, (os.cpu_count() or 1) // max(1, int(threads)))
+
+
 def run_estimates(
     shards: list[Path],
     models: list[str],
     out_dir: Path,
-    workers: int = 1,
+    workers: int | None = None,
     threads: int = 2,
     max_pixels: int | None = None,
     max_iter: int = 18,
     progress: bool = True,
     config: EstimatorConfig | None = None,
     sun_prior: bool = True,
+    executor: str = "local",
+    ray_address: str | None = None,
+    rows_per_part: int = 64,
 ) -> dict:
-    """Estimate every record of ``shards`` with each of ``models``; returns a summary dict."""
+    """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
+    ``workers`` None: :func:`default_workers`."""
+    from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records
-    from f2l.io.tables import ParquetAppender
     from f2l.models.registry import load_model
     from f2l.lighting.grid import LatLongGrid
 
+    if executor not in ("local", "ray"):
+        raise ValueError(f"executor must be 'local' or 'ray', got {executor!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name in models:  # fail fast, with the registry's message, on an unknown model
-        load_model(name, LatLongGrid(8, 16))
+    workers = default_workers(threads) if workers is None else max(1, int(workers))
     cfg = config or EstimatorConfig(threads=threads, max_pixels=max_pixels, max_iter=max_iter,
                                     sun_prior_from_capture=sun_prior)
+    hashes = {}
+    for name in models:  # fail fast, with the registry's message, on an unknown model
+        hashes[name] = config_hash(name, load_model(name, LatLongGrid(8, 16)).version, cfg)
     shard_paths = [str(Path(s).resolve()) for s in shards]
-    run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models, "config": asdict(cfg)}
+    run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models,
+                "config": asdict(cfg), "config_hashes": hashes, "executor": executor}
     _write_json_atomic(out_dir / RUN_FILE, run_info)
+    old_rows = resume.previous_rows(out_dir)
+    done = resume.done_keys(old_rows, hashes)
 
     try:
         total_records = sum(count_records(s) for s in shards)
@@ -202,31 +221,41 @@ def run_estimates(
         total_records = None
     n_tasks = None if total_records is None else total_records * len(models)
 
-    counts = {"ok": 0, "failed": 0}
+    counts = {"ok": 0, "failed": 0, "skipped": 0}
     t_start = time.perf_counter()
-    appender = ParquetAppender(out_dir / ESTIMATES_FILE, "estimates")
+    parts = resume.PartWriter(out_dir, rows_per_part)
     bar = _progress(n_tasks, progress)
 
     def handle(row: dict) -> None:
-        appender.append([row])
+        parts.append(row)
         counts["ok" if row["status"] == "ok" else "failed"] += 1
         if row["status"] != "ok" and progress:
             bar.write(f"[{row['status']}] {row['message']}")
         bar.update(1)
 
-    def records():
+    def tasks():
+        """(record or BadRecord, model) pairs still to do; done ones are counted and skipped."""
         for shard in shards:
-            yield from iter_records(shard)
+            for rec in iter_records(shard):
+                for name in models:
+                    if (rec.face_id, name) in done:
+                        counts["skipped"] += 1
+                        bar.update(1)
+                        continue
+                    yield rec, name
 
     try:
-        if workers <= 1:
+        if executor == "ray":
+            from f2l.estimate.ray_executor import ray_estimate_rows
+
+            for row in ray_estimate_rows(shards, models, str(out_dir), cfg, done,
+                                         address=ray_address, workers=workers):
+                handle(row)
+        elif workers <= 1:
             torch_threads(threads)
-            for rec in records():
-                for name in models:
-                    if isinstance(rec, BadRecord):
-                        handle(_bad_row(rec, name))
-                    else:
-                        handle(estimate_record(rec, name, str(out_dir), cfg))
+            for rec, name in tasks():
+                handle(_bad_row(rec, name) if isinstance(rec, BadRecord)
+                       else estimate_record(rec, name, str(out_dir), cfg))
         else:
             import multiprocessing
 
@@ -235,20 +264,20 @@ def run_estimates(
             with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(threads,),
                                      mp_context=context) as pool:
                 pending: set[Future] = set()
-                for rec in records():
-                    for name in models:
-                        if isinstance(rec, BadRecord):
-                            handle(_bad_row(rec, name))
-                            continue
-                        pending.add(pool.submit(estimate_record, rec, name, str(out_dir), cfg))
-                        if len(pending) >= 2 * workers:
-                            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                            for fut in done:
-                                handle(fut.result())
+                for rec, name in tasks():
+                    if isinstance(rec, BadRecord):
+                        handle(_bad_row(rec, name))
+                        continue
+                    pending.add(pool.submit(estimate_record, rec, name, str(out_dir), cfg))
+                    if len(pending) >= 2 * workers:
+                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in finished:
+                            handle(fut.result())
                 for fut in pending:
                     handle(fut.result())
+        parts.flush()
+        resume.finalise(out_dir, old_rows, parts.rows)
     finally:
-        appender.close()
         bar.close()
     elapsed = time.perf_counter() - t_start
     total = counts["ok"] + counts["failed"]
@@ -256,11 +285,14 @@ def run_estimates(
         "out": str(out_dir),
         "estimates": str(out_dir / ESTIMATES_FILE),
         "models": models,
+        "executor": executor,
+        "workers": workers,
         "total": total,
         "ok": counts["ok"],
         "failed": counts["failed"],
+        "skipped_done": counts["skipped"],
         "elapsed_s": round(elapsed, 3),
-        "faces_per_minute": round(60.0 * total / elapsed, 2) if elapsed > 0 else None,
+        "faces_per_minute": round(60.0 * total / elapsed, 2) if elapsed > 0 and total else None,
     }
 
 

@@ -18,7 +18,8 @@ import OpenEXR
 
 from f2l.io.atomic import atomic_path
 
-__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata", "NEGATIVE_TOLERANCE"]
+__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata", "read_probe_image",
+           "NEGATIVE_TOLERANCE"]
 
 NEGATIVE_TOLERANCE = 1e-6
 """Values in [-1e-6, 0) are accepted (rounding noise); anything more negative is an error."""
@@ -124,3 +125,22 @@ def read_exr_with_metadata(path: str | os.PathLike) -> tuple[np.ndarray, dict[st
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """Read an EXR as (H, W, 3) float32 (see ``read_exr_with_metadata``)."""
     return read_exr_with_metadata(path)[0]
+
+
+def read_probe_image(path: str | os.PathLike) -> np.ndarray:
+    """(H, W, 3) float32 linear radiance of an EXR (:func:`read_exr`) or a Radiance ``.hdr``
+    (through OpenCV); ValueError naming the file when it cannot be read."""
+    path = Path(path)
+    if path.suffix.lower() == ".hdr":
+        import cv2
+
+        if not path.is_file():
+            raise ValueError(f"{path}: file not found")
+        img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+        if img is None or img.ndim != 3:
+            raise ValueError(f"{path}: unreadable Radiance HDR")
+        return np.ascontiguousarray(img[:, :, ::-1], dtype=np.float32)  # OpenCV: BGR
+    try:
+        return read_exr(path)
+    except ExrError as exc:
+        raise ValueError(str(exc)) from exc

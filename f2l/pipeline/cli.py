@@ -1,0 +1,66 @@
+"""CLI layer of ``f2l build-dataset`` (registered on the main app as
+``app.command("build-dataset")(build_dataset_cmd)``; ``python -m f2l.pipeline.cli`` runs it on
+its own).
+
+Exit codes: 0 built or up to date; 1 the dataset holds no record (the card says why);
+2 bad arguments, pipeline file, capture folder or face model; 3 another build holds the lock.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def build_dataset_cmd(
+    root: Optional[Path] = typer.Argument(None, help="Capture tree (one folder per session). It is ingested (incrementally) first; leave it out to rebuild from the tree the last build in WORK used."),
+    pipeline: Optional[Path] = typer.Option(None, "--pipeline", help="Pipeline TOML (default: pipelines/face2light.toml)."),
+    work: Path = typer.Option(Path("work"), "--work", help="Work folder: captures.parquet, the stage cache, the lock and the run log."),
+    out: Path = typer.Option(Path("shards"), "--out", help="Output shard folder (face records, probes/, photos/, overlays/, dataset_card.json)."),
+    landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON summary only."),
+) -> None:
+    """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out."""
+    from f2l.face.landmarker import LandmarkerError
+    from f2l.pipeline.build import build_dataset
+    from f2l.pipeline.cache import LockHeld
+    from f2l.synth.facemesh import FaceMeshError
+
+    echo = None if json_out else (lambda line: typer.echo(line, err=True))
+    try:
+        summary = build_dataset(root, work, out, pipeline, landmarker_path=landmarker, echo=echo,
+                                progress=not json_out and sys.stderr.isatty())
+    except LockHeld as exc:
+        typer.echo(f"f2l: error: {exc}", err=True)
+        raise typer.Exit(code=3)
+    except (ValueError, FileNotFoundError, LandmarkerError, FaceMeshError) as exc:
+        typer.echo(f"f2l: error: {exc}", err=True)
+        raise typer.Exit(code=2)
+    if json_out:
+        data = summary.to_json()
+        data["stage_seconds"] = {k: v for k, v in data["stage_seconds"].items() if k != "items"}
+        typer.echo(json.dumps(data))
+    else:
+        counts = summary.counts
+        typer.echo(f"{summary.message}. {counts.get('records', 0)} records from "
+                   f"{counts.get('face_photos_used', 0)} of {counts.get('face_photos', 0)} face "
+                   f"photos in {counts.get('shards', 0)} shards, {counts.get('left_out', 0)} "
+                   f"inputs left out -> {out} ({summary.seconds:.1f} s)")
+        for warning in summary.warnings[:20]:
+            typer.echo(f"  warning: {warning}")
+    if not summary.counts.get("records"):
+        raise typer.Exit(code=1)
+
+
+def main() -> None:
+    app = typer.Typer(add_completion=False)
+    app.command()(build_dataset_cmd)
+    app(prog_name="f2l build-dataset")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,138 @@
+"""The merge and sphere stages of ``build-dataset``: one cache entry per bracket, one per session.
+
+- ``merge`` entry (key: the bracket id, its frames' paths and SHA-256s, the frames' ``view_json``
+  (vignetting), ``view_max_side``): ``views/<bracket>.exr`` and ``.saturated.png`` from
+  :func:`f2l.capture.probes.merge_bracket_view`; ``done`` holds the ``probes`` row.
+- ``sphere`` entry (key: the session, the merge keys and ``view_json`` of its placed views, the
+  grid): ``probes/<session>.exr`` + ``.coverage.png`` from
+  :func:`f2l.capture.probes.assemble_session`, reading the merged views back from their entries.
+- A given probe (role ``probe``: EXR or Radiance ``.hdr``, full-sphere lat-long, W = 2H) is the
+  session's probe instead: a ``given-probe`` entry (key: its path, SHA-256 and the grid) holds
+  ``probe.exr``, area-resampled to the grid when its size differs.
+
+Probes stay in the sky camera's RGB and in the session's tripod frame here; colour correction
+and the turn to the face camera's frame happen when the shards are assembled
+(:mod:`f2l.pipeline.assemble`). Rows carry no timings (those go to the run log) and messages no
+absolute paths.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from f2l.pipeline.cache import Cache, stage_key
+from f2l.pipeline.plan import SessionPlan, relative_message
+
+MERGE_VERSION = 1
+SPHERE_VERSION = 1
+GIVEN_PROBE_VERSION = 1
+
+
+def _clean_row(row: dict, root) -> dict:
+    out = {k: v for k, v in row.items() if k != "seconds"}
+    out["message"] = relative_message(out.get("message", ""), root)
+    return out
+
+
+def _bracket_inputs(bid: str, frames: list[dict]) -> dict:
+    frames = sorted(frames, key=lambda f: f["path"])
+    return {"bracket": bid, "frames": [[f["path"], f["sha256"]] for f in frames],
+            "view_json": [f["view_json"] for f in frames]}
+
+
+def merge_session(cache: Cache, root: Path, plan: SessionPlan, params: dict, counts: dict,
+                  timings: dict) -> list[dict]:
+    """Merge every bracket of ``plan``: a list of ``{"key", "row", "entry", "view_json"}`` in
+    bracket order."""
+    import time
+
+    out = []
+    for bid in sorted(plan.brackets):
+        frames = plan.brackets[bid]
+        key = stage_key("merge", MERGE_VERSION, _bracket_inputs(bid, frames),
+                        {"view_max_side": int(params["view_max_side"])})
+
+        def produce(tmp: Path, bid=bid, frames=frames) -> dict:
+            from f2l.capture.probes import merge_bracket_view
+
+            t0 = time.perf_counter()
+            row, _ = merge_bracket_view(root, tmp, bid, frames, int(params["view_max_side"]))
+            timings[f"merge {bid}"] = round(time.perf_counter() - t0, 3)
+            return {"row": _clean_row(row, root)}
+
+        result, entry = cache.get_or_make("merge", key, produce, counts)
+        out.append({"key": key, "row": result["row"], "entry": str(entry),
+                    "view_json": sorted(frames, key=lambda f: f["path"])[0]["view_json"]})
+    return out
+
+
+def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw: tuple[int, int],
+                   counts: dict, timings: dict) -> dict | None:
+    """Assemble the session's placed views: ``{"key", "row", "entry"}``, or None when no view is
+    placed (every bracket failed or has no lens model)."""
+    import time
+
+    placed = [m for m in merged if m["row"]["status"] == "ok"]
+    if not placed:
+        return None
+    key = stage_key("sphere", SPHERE_VERSION,
+                    {"session": plan.name, "views": [[m["key"], m["view_json"]] for m in placed]},
+                    {"grid": list(grid_hw)})
+
+    def produce(tmp: Path) -> dict:
+        from f2l.capture.probes import assemble_session, load_view
+
+        t0 = time.perf_counter()
+        views = [load_view(m["entry"], m["row"], m["view_json"]) for m in placed]
+        row = assemble_session(plan.name, views, tmp, *grid_hw)
+        timings[f"sphere {plan.name}"] = round(time.perf_counter() - t0, 3)
+        return {"row": {k: v for k, v in row.items() if k != "seconds"}}
+
+    result, entry = cache.get_or_make("sphere", key, produce, counts)
+    return {"key": key, "row": result["row"], "entry": str(entry)}
+
+
+def read_probe_file(path: Path) -> np.ndarray:
+    """(H, W, 3) float32 of an EXR or Radiance ``.hdr`` (ValueError naming the file)."""
+    from f2l.io.exr import read_probe_image
+
+    return read_probe_image(path)
+
+
+def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int, int],
+                counts: dict) -> dict:
+    """The session's given probe on the grid: ``{"key", "row", "entry"}`` (row status ``error``
+    with the reason when it cannot be used)."""
+    row = plan.given_probe
+    key = stage_key("given-probe", GIVEN_PROBE_VERSION, {"path": row["path"],
+                                                         "sha256": row["sha256"]},
+                    {"grid": list(grid_hw)})
+
+    def produce(tmp: Path) -> dict:
+        from f2l.io.exr import write_exr
+        from f2l.lighting.resample import resample
+
+        out = {"kind": "given", "name": row["path"], "session": plan.name, "status": "ok",
+               "message": "", "path": None}
+        try:
+            probe = read_probe_file(root / row["path"])
+            h, w = probe.shape[:2]
+            if w != 2 * h:
+                raise ValueError(f"{row['path']}: a {h}x{w} probe is not a full-sphere lat-long "
+                                 f"(width = 2 x height)")
+            if not np.isfinite(probe).all() or probe.min() < 0:
+                raise ValueError(f"{row['path']}: probe has NaN, infinite or negative values")
+            if (h, w) != tuple(grid_hw):
+                probe = resample(probe, *grid_hw)
+                out["message"] = f"resampled from {h}x{w} to {grid_hw[0]}x{grid_hw[1]}"
+            write_exr(tmp / "probe.exr", np.asarray(probe, np.float32),
+                      metadata={"f2l_session": plan.name})
+            out["path"] = "probe.exr"
+        except ValueError as exc:
+            out.update(status="error", message=relative_message(str(exc), root))
+        return {"row": out}
+
+    result, entry = cache.get_or_make("given-probe", key, produce, counts)
+    return {"key": key, "row": result["row"], "entry": str(entry)}
