@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench bench-faces prior eval-sunsky eval-fit-faces clean
+.PHONY: setup demo test bench bench-faces prior ae-weights eval-sunsky eval-fit-faces clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,13 @@ prior: $(STAMP)
 	$(BIN)/f2l sky-corpus --out build/sky_corpus --n 200 --seed 0 --json
 	$(BIN)/f2l build-prior build/sky_corpus --model sunsky --components 6 --seed 0 \
 		--out plugins/f2l_builtin_models/data/sunsky_prior.json --json
+
+# Rebuild the shipped sky-autoencoder weights (+ latent prior, model card, loss curve) from the
+# project's own sky corpus (docs/ae.md): ~3 min corpus + ~25-30 min training on 2 cores. Resumable.
+ae-weights: $(STAMP)
+	$(BIN)/f2l ae-corpus --out build/ae_corpus --n-train 4000 --n-heldout 150 --seed 0 --json
+	$(BIN)/f2l train-ae build/ae_corpus/train --heldout build/ae_corpus/heldout --work-dir build/ae_train \
+		--epochs 5 --batch-size 16 --seed 0 --out plugins/f2l_builtin_models/data/ae_sky.npz
 
 # Sun+Sky acceptance harness: median Sun-ang / Sun-dω MAE on 24 sunny faces (sun 10-70° high, all
 # azimuths, noisy 8-bit photos) and the sun energy share on 10 overcast faces, SH25 for reference.

@@ -416,12 +416,15 @@ def bench_faces_cmd(
 from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
 from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
+from f2l.ae.cli import ae_corpus_cmd, train_ae_cmd  # noqa: E402
 
 app.command("ingest")(ingest_cmd)
 app.command("make-probes")(make_probes_cmd)
 app.command("bench-capture")(bench_capture_cmd)
 app.command("calibrate")(calibrate_cmd)
 app.command("build-dataset")(build_dataset_cmd)
+app.command("ae-corpus")(ae_corpus_cmd)
+app.command("train-ae")(train_ae_cmd)
 
 
 @app.command("scale-report")

@@ -331,6 +331,10 @@ class _Problem:
 def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig | None = None) -> EstimateResult:
     """Estimate lighting, albedo and ground albedo for one face with ``model``."""
     cfg = config or EstimatorConfig()
+    if getattr(model, "latent_sky", False):  # sky decoders (the autoencoder): batched starts, f2l.ae.estimate
+        from f2l.ae.estimate import estimate_latent_sky
+
+        return estimate_latent_sky(obs, model, cfg)
     t_start = time.perf_counter()
     dtype = torch.float64
     torch.set_num_threads(max(1, cfg.threads))

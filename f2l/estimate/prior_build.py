@@ -87,10 +87,24 @@ def _side_info(path: Path) -> dict:
         return {}
 
 
+def probe_fit_metrics(fit, probe: np.ndarray, grid) -> dict:
+    """The §5.1 lighting metrics (``f2l.metrics.lighting.probe_metrics``: Full/Sky/Sun-dω MAE and
+    Sun-ang, sun metrics NaN where the overcast heuristic calls the probe overcast) of a fit
+    against the probe it fitted, on the model's grid. The estimated sun is the model's own
+    (``fit.sun_direction``) where it has one, else the fitted probe's brightest region."""
+    from f2l.estimate.probe_fit import _check_probe
+    from f2l.metrics.lighting import probe_metrics
+
+    gt = _check_probe(probe, grid)
+    return probe_metrics(fit.probe, gt, grid, est_sun_dir=fit.sun_direction)
+
+
 def fit_probes(paths: list[Path], model, progress: Callable | None = None,
                out_dir: str | Path | None = None, **fit_options) -> list[ProbeRecord]:
     """fit_probe on every path; a bad file gets status 'error' and a message, the rest go on.
-    With ``out_dir``, each fitted probe is written there as ``<stem>_<model>.exr``."""
+    With ``out_dir``, each fitted probe is written there as ``<stem>_<model>.exr``. Each record's
+    ``extra["metrics"]`` holds :func:`probe_fit_metrics`, and ``extra["variants"]`` the same for
+    the fit's named variants (e.g. ``ae_ff``)."""
     from f2l.estimate.probe_fit import ProbeFitError, fit_probe
     from f2l.io.exr import ExrError, read_exr, write_exr
 
@@ -111,10 +125,16 @@ def fit_probes(paths: list[Path], model, progress: Callable | None = None,
                               runtime_s=fit.runtime_s, kind=info.get("kind"),
                               sun_direction=None if fit.sun_direction is None else
                               [float(v) for v in fit.sun_direction])
+            rec.extra["metrics"] = probe_fit_metrics(fit, probe, model.grid)
+            rec.extra["variants"] = {name: {"metrics": probe_fit_metrics(v, probe, model.grid),
+                                            "runtime_s": v.runtime_s, "params": v.params.tolist()}
+                                     for name, v in fit.variants.items()}
             if out_dir is not None:
                 fitted_path = Path(out_dir) / f"{path.stem}_{model.name}.exr"
                 write_exr(fitted_path, fit.probe)
                 rec.extra["fitted_probe"] = str(fitted_path)
+                for name, v in fit.variants.items():
+                    write_exr(Path(out_dir) / f"{path.stem}_{name}.exr", v.probe)
             true_sun = info.get("sun_direction")
             if true_sun is not None and fit.sun_direction is not None:
                 t = np.asarray(true_sun, dtype=np.float64)
@@ -171,17 +191,63 @@ def write_fit_report(records: list[ProbeRecord], model, out_dir: str | Path | No
     for r in records:
         if r.status != "ok":
             lines.append(f"\nerror: {r.message}")
+    table = metrics_table(records, model.name)
+    summary["metrics"] = table["rows"]
+    if table["rows"]:
+        lines += ["", *table["lines"]]
     summary["markdown"] = "\n".join(lines)
     if out_dir is not None:
+        from f2l.metrics.lighting import PROBE_METRIC_NAMES
+
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        variants = sorted({name for r in ok for name in r.extra.get("variants", {})})
+        metric_cols = list(PROBE_METRIC_NAMES) + [f"{v} {m}" for v in variants for m in PROBE_METRIC_NAMES]
         buf = io.StringIO()
         writer = csv.writer(buf)
         writer.writerow(["path", "status", "message", "kind", "loss", "runtime_s", "sun_angle_deg",
-                         *model.param_names])
+                         *model.param_names, *metric_cols])
         for r in records:
+            metrics = r.extra.get("metrics", {})
+            var = r.extra.get("variants", {})
+            cells = [metrics.get(m, "") for m in PROBE_METRIC_NAMES]
+            cells += [var.get(v, {}).get("metrics", {}).get(m, "") for v in variants for m in PROBE_METRIC_NAMES]
             writer.writerow([r.path, r.status, r.message, r.kind or "", r.loss, r.runtime_s,
-                             r.sun_angle_deg, *(r.params or [""] * model.num_params)])
+                             r.sun_angle_deg, *(r.params or [""] * model.num_params), *cells])
         write_text_atomic(out / "fit_probe.csv", buf.getvalue())
         summary["csv"] = str(out / "fit_probe.csv")
     return summary
+
+
+def metrics_table(records: list[ProbeRecord], model_name: str) -> dict:
+    """Table-1-style rows (mean over the fitted probes of each §5.1 lighting metric; sun metrics
+    over the probes that are not overcast) for the model and each of its fit variants:
+    {"rows": [{"model", "n", metric: mean, "<metric> median", "<metric> n", "runtime_s"}],
+    "lines": Markdown}."""
+    from f2l.metrics.lighting import PROBE_METRIC_NAMES
+
+    ok = [r for r in records if r.status == "ok" and "metrics" in r.extra]
+    sources = {model_name: [(r.extra["metrics"], r.runtime_s) for r in ok]}
+    for r in ok:
+        for name, v in r.extra.get("variants", {}).items():
+            sources.setdefault(name, []).append((v["metrics"], v["runtime_s"]))
+    rows = []
+    for name, items in sources.items():
+        if not items:
+            continue
+        row = {"model": name, "n": len(items), "runtime_s": float(np.median([t for _, t in items]))}
+        for m in PROBE_METRIC_NAMES:
+            vals = np.array([mt[m] for mt, _ in items], dtype=np.float64)
+            vals = vals[np.isfinite(vals)]
+            row[m] = float(vals.mean()) if vals.size else None
+            row[f"{m} median"] = float(np.median(vals)) if vals.size else None
+            row[f"{m} n"] = int(vals.size)
+        rows.append(row)
+    fmt = lambda v: "-" if v is None else f"{v:.4g}"  # noqa: E731
+    lines = ["| fit | probes | " + " | ".join(f"{m} mean (median)" for m in PROBE_METRIC_NAMES) + " | sunny | time (s) |",
+             "|---|---|" + "---|" * len(PROBE_METRIC_NAMES) + "---|---|"]
+    for row in rows:
+        cells = [f"{fmt(row[m])} ({fmt(row[m + ' median'])})" for m in PROBE_METRIC_NAMES]
+        lines.append(f"| {row['model']} | {row['n']} | " + " | ".join(cells)
+                     + f" | {row[PROBE_METRIC_NAMES[-1] + ' n']} | {row['runtime_s']:.2f} |")
+    return {"rows": rows, "lines": lines}

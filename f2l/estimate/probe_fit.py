@@ -41,7 +41,8 @@ class ProbeFitError(ValueError):
 @dataclass
 class ProbeFit:
     """params (P,), loss, L-BFGS iterations, fitted radiance (H, W, 3) float32, the model's sun
-    direction (or None), wall time, and the loss of every start."""
+    direction (or None), wall time, the loss of every start, and named variant fits of the same
+    probe that a model's own routine may add (e.g. the autoencoder's feed-forward ``ae_ff``)."""
 
     params: np.ndarray
     loss: float
@@ -50,6 +51,7 @@ class ProbeFit:
     sun_direction: np.ndarray | None
     runtime_s: float
     start_losses: list = field(default_factory=list)
+    variants: dict = field(default_factory=dict)
 
 
 def probe_fit_loss(radiance: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
@@ -90,11 +92,16 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
     """Fit ``model`` (a LightingModel on its own grid) to ``probe`` (H, W, 3) linear radiance.
 
     A probe on another lat-long grid is resampled (energy-preserving) to the model's grid.
-    ``starts`` (S, P) replaces the model's starting points.
+    ``starts`` (S, P) replaces the model's starting points. A model with its own fit-to-probe
+    routine (``model.fit_to_probe(probe, **options)``, e.g. the sky autoencoder) gets the checked,
+    resampled probe and these options and returns the ProbeFit itself.
     """
     t0 = time.perf_counter()
     grid = model.grid
     probe = _check_probe(probe, grid)
+    own_fit = getattr(model, "fit_to_probe", None)
+    if own_fit is not None:
+        return own_fit(probe, max_iter=max_iter, tolerance=tolerance, starts=starts, threads=threads)
     target_np = probe.reshape(-1, 3)
     domain = grid.upper_mask.reshape(-1) if model.domain == "sky" else np.ones(grid.size, bool)
     w = np.where(domain, grid.solid_angles_flat, 0.0)

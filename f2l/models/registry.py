@@ -63,4 +63,7 @@ def load_model(name: str, grid: LatLongGrid) -> LightingModel:
     info = models[name]
     if not info.ok:
         raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to load: {info.error}")
-    return info.cls(grid)
+    try:
+        return info.cls(grid)
+    except Exception as exc:  # e.g. a model's data file (weights, prior) is missing or broken
+        raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to initialise: {exc}") from exc

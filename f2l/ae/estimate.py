@@ -1,0 +1,300 @@
+"""Face estimation with the sky autoencoder (``latent_sky`` models; called by ``f2l.estimate.estimate``).
+
+Forward model (paper §3.2 with l = R(phi) f_AE(z)): shading s = rho ⊙ (T_sky l + g rho_g E_h / pi),
+per channel, with the sky transport in the hybrid form of ``f2l.estimate.sky_transport``:
+T_sky l = T_blk m(l) + sum_{w in core} (T - T~)[:, w] l_w, m the solid-angle-weighted means of
+4 x 4-texel blocks and the core the ``sun_core_texels`` sky texels of most energy Y(l) dOmega
+(chosen per start and evaluation, detached): exact visibility where the sun is, block-averaged
+transport for the smooth rest; E_h = sum_sky max(0, w_y) l dOmega and g = T_gnd 1.
+
+Unknowns and parameterisation (float32 throughout; the network is float32):
+- z_shape (63), phi (1): the sky's shape and its sun's azimuth;
+- psi = rho e^{z_0} (3): albedo times exposure, which is all the data term sees (the exposure-
+  albedo ambiguity is then not in the data term's conditioning, as for Sun+Sky), as log psi;
+- z_0 = log max(psi) + softplus(u): the albedo rho = psi e^{-z_0} <= 1, set by the priors only;
+- rho_g = sigmoid(x_g), the ground albedo.
+Objective: mean Charbonnier(s - s*) / mean(s*) + w_l GMM-NLL(z_shape) + w_rho skin-NLL(rho).
+
+Starts (all batched through the decoder, one forward/backward per evaluation):
+1. coarse search: the codes of ``model.search_codes()`` (each GMM component's mean and +-1.5
+   sigma along its first principal axis: 24 skies, decoded once per model and cached) at every
+   azimuth in steps of half a block (5.6 deg on 128 columns: block means of two sub-shifts, then
+   rolls of whole block columns), each scored by the mean absolute residual of its least-squares
+   psi through T_blk (+ ground): one (N x nb) x (nb x 3 K A) product;
+2. the best ``SEARCH_REFINE`` candidates are scored again through the full transport (exact sun
+   core: cast shadows), still without the decoder (the cached skies, rolled);
+3. the best ``sun_starts`` distinct ones (>= 45 deg apart in azimuth, or other codes >= 15 deg
+   apart) start torch L-BFGS (strong Wolfe): all of them for ``sun_all_starts_iters``
+   iterations, then the best alone for the rest of ``max_iter``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from f2l.ae.encoding import decode_unit, rotate_columns
+from f2l.estimate.estimator import (EstimateResult, EstimationError, EstimatorConfig, FaceObservation,
+                                    _albedo_prior_nll, usable_pixels)
+from f2l.estimate.skin import skin_albedo_mean
+from f2l.estimate.sky_transport import SkyTransport
+from f2l.transport import Transport
+
+BLOCK = (4, 4)
+SEARCH_REFINE = 32
+MIN_START_SEPARATION_RAD = math.radians(45.0)
+
+
+class LatentSkyProblem:
+    """Per-face precomputation and the batched forward model (module docstring)."""
+
+    def __init__(self, obs: FaceObservation, model, cfg: EstimatorConfig) -> None:
+        grid = obs.grid
+        self.grid, self.model, self.cfg = grid, model, cfg
+        idx = usable_pixels(obs)
+        if cfg.max_pixels and idx.size > cfg.max_pixels:
+            idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_pixels, replace=False))
+        if cfg.sun_max_pixels and idx.size > cfg.sun_max_pixels:
+            idx = idx[np.round(np.linspace(0, idx.size - 1, cfg.sun_max_pixels)).astype(np.int64)]
+        self.idx = idx
+        transport = Transport(obs.visibility_bits[idx], np.asarray(obs.normals, np.float64)[idx], grid)
+        self.rows, self.width = grid.sky_rows, grid.width
+        if self.rows % BLOCK[0] or self.width % (2 * BLOCK[1]):
+            raise EstimationError(f"grid {grid.height}x{grid.width}: the sky rows and columns must split into "
+                                  f"{BLOCK[0]}x{BLOCK[1]} blocks for the autoencoder's transport")
+        self.sky = SkyTransport(transport, grid, block=BLOCK, core_texels=cfg.sun_core_texels)
+        self.t_blk = self.sky.t_blk.float()  # (N, nb)
+        self.nbr, self.nbc = self.sky.shape_blocks
+        ground_rows = grid.height - self.rows
+        g = transport.block_sums(ground_rows, (ground_rows, 4), first_row=self.rows).sum(1)
+        self.g = torch.as_tensor(g, dtype=torch.float32)  # (N,) T_gnd 1
+        lu = self.rows * self.width
+        self.d_omega = torch.as_tensor(np.array(grid.solid_angles[: self.rows]), dtype=torch.float32)  # (rows, W)
+        self.omega_b = self.sky.omega_b.float().reshape(self.nbr, self.nbc)
+        up = np.maximum(grid.directions_flat[:lu, 1], 0.0) * grid.solid_angles_flat[:lu]
+        self.e_sky = torch.as_tensor(up, dtype=torch.float32)  # E_h = e_sky . l
+        self.target = torch.as_tensor(np.asarray(obs.observed_rgb, np.float64)[idx].T, dtype=torch.float32)  # (3, N)
+        self.target_scale = float(self.target.mean().clamp_min(1e-12))
+        self.luma = torch.tensor([0.2126, 0.7152, 0.0722])
+
+    # -- forward -----------------------------------------------------------------------------------------
+    def shape_sky(self, z_shape: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
+        """(B, 3, rows, W) sky of unit exposure on the grid: R(phi) max(D(z), 0)^3."""
+        model = self.model
+        sky = decode_unit(model.decoder(z_shape))
+        if azimuth is not None:
+            sky = rotate_columns(sky, azimuth)
+        if model._resample is not None:
+            r, c = model._resample
+            sky = torch.einsum("ih,bchw,jw->bcij", r, sky, c)
+        return sky
+
+    def block_means(self, sky: torch.Tensor) -> torch.Tensor:
+        """(B, 3, rows, W) -> (B, 3, nbr, nbc) solid-angle-weighted block means."""
+        B = sky.shape[0]
+        br, bc = BLOCK
+        e = (sky * self.d_omega).reshape(B, 3, self.nbr, br, self.nbc, bc).sum((3, 5))
+        return e / self.omega_b
+
+    def ground(self, sky: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
+        """(B, 3, N) ground bounce g rho_g E_h / pi."""
+        e_h = sky.flatten(2) @ self.e_sky  # (B, 3)
+        return (ground_albedo / math.pi)[:, None, None] * e_h[:, :, None] * self.g
+
+    def transport(self, sky: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
+        """T l (B, 3, N) of sky radiance (B, 3, rows, W): blocks + exact core + ground."""
+        B = sky.shape[0]
+        m = self.block_means(sky).reshape(B * 3, -1)
+        tl = (m @ self.t_blk.T).reshape(B, 3, -1)
+        k = self.sky.core_texels
+        if k > 0:
+            flat = sky.flatten(2)  # (B, 3, Lu)
+            energy = (self.luma @ flat.detach()) * self.d_omega.reshape(-1)  # (B, Lu)
+            texels = torch.topk(energy, k, dim=1).indices  # (B, k)
+            resid = self.sky.cache.rows(texels.numpy()).to(torch.float32)  # (B, k, N)
+            core = torch.gather(flat, 2, texels[:, None, :].expand(B, 3, k))  # (B, 3, k)
+            tl = tl + torch.bmm(core, resid)
+        return tl + self.ground(sky, ground_albedo)
+
+    # -- search -----------------------------------------------------------------------------------------
+    def candidate_skies(self) -> tuple[np.ndarray, torch.Tensor]:
+        """(codes (K, 63), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached
+        on the model (they do not depend on the face)."""
+        model = self.model
+        cache = model.__dict__.setdefault("_search_cache", {})
+        if "skies" not in cache:
+            codes = model.search_codes()
+            with torch.no_grad():
+                cache["codes"] = codes
+                cache["skies"] = self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None)
+        return cache["codes"], cache["skies"]
+
+    @staticmethod
+    def _psi_score(tl: torch.Tensor, y: torch.Tensor, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Least-squares psi (..., 3) of shading tl (..., 3, N) against y (3, N) and the mean
+        absolute residual (...,) / scale."""
+        psi = ((tl * y).sum(-1) / (tl * tl).sum(-1).clamp_min(1e-30)).clamp_min(1e-12)
+        return psi, (psi[..., None] * tl - y).abs().mean((-2, -1)) / scale
+
+    @torch.no_grad()
+    def search(self, ground_albedo: float, refine: int = SEARCH_REFINE) -> list[dict]:
+        """Every (code, azimuth) scored through the block transport, the best ``refine`` again
+        through the full one (module docstring); best first."""
+        codes, sky = self.candidate_skies()
+        K = sky.shape[0]
+        half = BLOCK[1] // 2
+        shifts = torch.stack([self.block_means(sky), self.block_means(torch.roll(sky, half, dims=-1))], 1)
+        # azimuth index j = 2 a + h: a shift of (a BLOCK[1] + h half) columns
+        rolled = torch.stack([torch.roll(shifts, a, dims=-1) for a in range(self.nbc)], 1)  # (K, A/2, 2, 3, nbr, nbc)
+        A = 2 * self.nbc
+        tl = (rolled.reshape(K * A * 3, -1) @ self.t_blk.T).reshape(K, A, 3, -1)
+        rho_g = torch.full((K,), ground_albedo)
+        tl = tl + self.ground(sky, rho_g)[:, None]
+        psi, score = self._psi_score(tl, self.target, self.target_scale)  # (K, A, 3), (K, A)
+        best = torch.argsort(score.reshape(-1))[:refine]
+        k_idx, j_idx = best // A, best % A
+        rotated = torch.stack([torch.roll(sky[k], int(j) * half, dims=-1) for k, j in zip(k_idx.tolist(), j_idx.tolist())])
+        psi2, score2 = self._psi_score(self.transport(rotated, torch.full((len(best),), ground_albedo)),
+                                       self.target, self.target_scale)
+        step = 2.0 * math.pi / self.width * half
+        out = [{"k": int(k), "code": codes[int(k)], "azimuth": float(((int(j) * step + math.pi) % (2 * math.pi)) - math.pi),
+                "psi": psi2[i].numpy().astype(np.float64), "score": float(score2[i]), "coarse_score": float(score[k, j])}
+               for i, (k, j) in enumerate(zip(k_idx.tolist(), j_idx.tolist()))]
+        return sorted(out, key=lambda c: c["score"])
+
+
+def pick_starts(candidates: list[dict], n: int) -> list[dict]:
+    """The best candidate, then the best ones >= 45 deg in azimuth from all picked (or of
+    another centroid and >= 15 deg away), up to ``n``."""
+    picked: list[dict] = []
+    for c in candidates:
+        if len(picked) >= n:
+            break
+        ok = True
+        for p in picked:
+            d = abs((c["azimuth"] - p["azimuth"] + math.pi) % (2 * math.pi) - math.pi)
+            if d < MIN_START_SEPARATION_RAD and not (c["k"] != p["k"] and d >= MIN_START_SEPARATION_RAD / 3):
+                ok = False
+                break
+        if ok:
+            picked.append(c)
+    return picked
+
+
+def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None = None) -> EstimateResult:
+    """Estimate a face's lighting with a latent-sky model (module docstring)."""
+    cfg = cfg or EstimatorConfig()
+    t_start = time.perf_counter()
+    torch.set_num_threads(max(1, cfg.threads))
+    prob = LatentSkyProblem(obs, model, cfg)
+    precompute_s = time.perf_counter() - t_start
+    torch.set_num_threads(1)  # small batched tensors: one intra-op thread (f2l.estimate.estimator)
+
+    t_search = time.perf_counter()
+    rho_skin = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), dtype=np.float64)
+    candidates = prob.search(cfg.ground_albedo_init)
+    starts = pick_starts(candidates, max(1, cfg.sun_starts))
+    search_s = time.perf_counter() - t_search
+
+    z0 = torch.tensor(np.stack([c["code"] for c in starts]), dtype=torch.float32)
+    phi0 = torch.tensor([c["azimuth"] for c in starts], dtype=torch.float32)
+    psi0 = np.stack([np.maximum(c["psi"], 1e-6 * max(c["psi"].max(), 1e-12)) for c in starts])
+    logpsi0 = torch.tensor(np.log(psi0), dtype=torch.float32)
+    # rho = psi / max(psi) * exp(-softplus(u)): start at the skin albedo's brightest channel
+    sp = max(-math.log(float(np.clip(rho_skin.max(), 1e-3, 1 - 1e-3))), 1e-3)
+    u0 = torch.full((len(starts),), math.log(math.expm1(sp)), dtype=torch.float32)
+    g = float(np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3))
+    xg0 = torch.full((len(starts),), math.log(g / (1 - g)), dtype=torch.float32)
+    fixed = None if cfg.fixed_albedo is None else torch.as_tensor(rho_skin, dtype=torch.float32)
+
+    def unpack(zs, phi, logpsi, u, xg):
+        psi = torch.exp(logpsi)
+        if fixed is None:
+            log_exposure = logpsi.max(1).values + F.softplus(u)
+            rho = torch.exp(logpsi - log_exposure[:, None])
+        else:
+            rho = fixed.expand(len(zs), 3)
+            log_exposure = (logpsi - torch.log(fixed)).mean(1)
+        return psi, rho, log_exposure, torch.sigmoid(xg)
+
+    def objective(zs, phi, logpsi, u, xg):
+        psi, rho, _, rho_g = unpack(zs, phi, logpsi, u, xg)
+        tl = prob.transport(prob.shape_sky(zs, phi), rho_g)
+        r = psi[:, :, None] * tl - prob.target[None]
+        data = torch.sqrt(r * r + cfg.charbonnier_eps**2).mean((1, 2)) / prob.target_scale
+        total = data + cfg.light_prior_weight * model.prior_nll_shape(zs)
+        if fixed is None:
+            total = total + cfg.albedo_prior_weight * _albedo_prior_nll(rho)
+        return total, data
+
+    t_fit = time.perf_counter()
+    variables = (z0, phi0, logpsi0, u0, xg0)
+    budget, iterations = max(1, cfg.max_iter), 0
+    if len(starts) > 1 and 0 < cfg.sun_all_starts_iters < budget:
+        variables, its = _lbfgs(objective, variables, cfg, cfg.sun_all_starts_iters, fixed is not None)
+        iterations += its
+        budget -= its
+        with torch.no_grad():
+            total, _ = objective(*variables)
+        keep = int(np.nanargmin(total.numpy()))
+        variables = tuple(v[keep : keep + 1].clone() for v in variables)
+    variables, its = _lbfgs(objective, variables, cfg, budget, fixed is not None)
+    iterations += its
+    fit_s = time.perf_counter() - t_fit
+
+    with torch.no_grad():
+        total, _ = objective(*variables)
+        zs, phi, logpsi, u, xg = variables
+        _, rho, log_exposure, rho_g = unpack(*variables)
+    if not torch.isfinite(total).all():
+        raise EstimationError("optimisation diverged: objective is not finite")
+    params = np.concatenate([[float(log_exposure[0])], zs[0].double().numpy(),
+                             [float(((phi[0] + math.pi) % (2 * math.pi)) - math.pi)]])
+    probe = _probe_with_ground(model, params, float(rho_g[0]))
+    if not np.isfinite(probe).all():
+        raise EstimationError("estimated probe is not finite")
+    runtime = time.perf_counter() - t_start
+    return EstimateResult(
+        params=params, param_names=list(model.param_names), albedo=rho[0].double().numpy(),
+        ground_albedo=float(rho_g[0]), loss=float(total[0]), iterations=iterations, converged=its < budget,
+        runtime_s=runtime, probe=probe, sun_direction=model.sun_direction(params),
+        timings={"precompute_s": precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime,
+                 "starts": float(len(starts))},
+        start_losses=[c["score"] for c in starts], num_pixels_used=int(prob.idx.size),
+    )
+
+
+def _probe_with_ground(model, params: np.ndarray, ground_albedo: float) -> np.ndarray:
+    """(H, W, 3) float32 probe of ``params`` with the Lambertian ground bounce below the horizon."""
+    grid = model.grid
+    probe = model.probe(params).astype(np.float64)
+    rows = grid.sky_rows
+    up = np.maximum(grid.directions[:rows, :, 1], 0.0) * grid.solid_angles[:rows]
+    e_h = np.einsum("hwc,hw->c", probe[:rows], up)
+    probe[rows:] = ground_albedo / math.pi * e_h
+    return np.maximum(probe, 0.0).astype(np.float32)
+
+
+def _lbfgs(objective, variables, cfg: EstimatorConfig, max_iter: int, fixed_albedo: bool):
+    """torch L-BFGS (strong Wolfe) on the summed per-start objective; (leaves, iterations)."""
+    leaves = [v.detach().clone().requires_grad_(True) for v in variables]
+    with torch.no_grad():
+        start = float(objective(*leaves)[1].sum())
+    trained = [leaves[i] for i in range(5) if not (fixed_albedo and i == 3)]
+    optimiser = torch.optim.LBFGS(trained, lr=1.0, max_iter=max_iter, tolerance_grad=1e-9,
+                                  tolerance_change=cfg.tolerance * 1e-2 * start, history_size=20,
+                                  line_search_fn="strong_wolfe")
+
+    def closure():
+        optimiser.zero_grad()
+        loss = objective(*leaves)[0].sum()
+        loss.backward()
+        return loss
+
+    optimiser.step(closure)
+    state = optimiser.state[optimiser._params[0]]
+    return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))

@@ -1,0 +1,191 @@
+"""Sky autoencoder lighting model (Calian et al. 2018, §3.3.3): l = R(phi_sun) f_AE(z).
+
+Parameters, in order (65):
+
+    z00_log_exposure     z_0 = log s, the sky's mean luminance (exact, not learned; unbounded)
+    z01 ... z63          z_shape, the encoder's learned code (unbounded)
+    sun_azimuth_rad      phi_sun: the decoded sky (sun at azimuth 0) is turned so that its sun is
+                         at this grid azimuth (0 = -Z, the camera's view; +pi/2 = +X); 2 pi-periodic
+
+Radiance: f_AE(z) = e^{z_0} max(D(z_shape), 0)^3, D the trained decoder (float32, on the
+32 x 128 sky hemisphere, ``f2l.ae``), R(phi) a circular column shift, linear between whole
+columns (``f2l.ae.encoding.rotate_columns``), then area-resampled to the grid's sky rows when the
+grid is not 64 x 128; the rows below the horizon are 0 (domain "sky": the estimator adds the
+ground bounce). Computed in float32, returned in the parameters' dtype.
+
+Weights: ``$F2L_AE_WEIGHTS`` or the shipped ``data/ae_sky.npz`` (rebuilt by ``make ae-weights``,
+docs/ae.md), with the latent GMM prior ``<stem>_prior.json`` beside it. A missing, truncated or
+foreign weights file raises ``f2l.ae.weights.AEWeightsError`` naming the file when the model is
+created. Face estimates go through ``f2l.ae.estimate`` (``latent_sky``: an azimuth x centroid
+search through the block transport, then all starts batched through the decoder); probe fits
+through ``f2l.ae.probe_fit`` (``fit_to_probe``: the feed-forward code ``ae_ff`` and its
+optimisation ``ae``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from f2l.lighting.grid import LatLongGrid
+from f2l.models.base import LightingModel
+
+DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "ae_sky.npz"
+WEIGHTS_ENV = "F2L_AE_WEIGHTS"
+START_AZIMUTHS_RAD = (-0.75 * math.pi, -0.25 * math.pi, 0.25 * math.pi, 0.75 * math.pi)
+MAX_PRIOR_COMPONENTS = 8
+_LOADED: dict = {}
+
+
+def weights_path() -> Path:
+    """The weights file in use: ``$F2L_AE_WEIGHTS`` or the shipped default."""
+    return Path(os.environ.get(WEIGHTS_ENV) or DEFAULT_WEIGHTS)
+
+
+def load_network(path: Path) -> dict:
+    """{"ae", "decoder", "meta", "prior"} for ``path``, cached per (path, size, mtime)."""
+    from f2l.ae.model import FastDecoder
+    from f2l.ae.prior import prior_path
+    from f2l.ae.weights import AEWeightsError, load_weights
+    from f2l.estimate.model_prior import load_prior
+
+    path = Path(path)
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    except OSError:
+        key = (str(path), None, None)
+    if key not in _LOADED:
+        ae, meta = load_weights(path)
+        prior_file = prior_path(path)
+        try:
+            prior = load_prior(prior_file) if prior_file.exists() else None
+        except ValueError as exc:
+            raise AEWeightsError(str(exc)) from exc
+        _LOADED[key] = {"ae": ae, "decoder": FastDecoder(ae), "meta": meta, "prior": prior, "path": path}
+    return _LOADED[key]
+
+
+class AE(LightingModel):
+    """The sky autoencoder model (module docstring)."""
+
+    name = "ae"
+    version = "1"
+    description = "Sky autoencoder: R(phi_sun) f_AE(z), z = (log exposure, 63 learned), 65 parameters"
+    domain = "sky"
+    latent_sky = True  # f2l.estimate dispatches faces to f2l.ae.estimate
+
+    def __init__(self, grid: LatLongGrid, weights: str | Path | None = None) -> None:
+        super().__init__(grid)
+        from f2l.ae.encoding import grid_resampler
+
+        self.weights_file = Path(weights) if weights is not None else weights_path()
+        net = load_network(self.weights_file)
+        self.network, self.decoder, self.prior = net["ae"], net["decoder"], net["prior"]
+        res = grid_resampler(grid)
+        self._resample = None if res is None else tuple(torch.as_tensor(m, dtype=torch.float32) for m in res)
+
+    # -- layout ------------------------------------------------------------------------------------
+    @property
+    def param_names(self) -> list[str]:
+        return ["z00_log_exposure"] + [f"z{i:02d}" for i in range(1, 64)] + ["sun_azimuth_rad"]
+
+    exposure_index = 0
+    shape_slice = slice(1, 64)
+    azimuth_index = 64
+
+    @property
+    def prior_feature_names(self) -> list[str]:
+        from f2l.ae.prior import FEATURE_NAMES
+
+        return FEATURE_NAMES
+
+    def prior_features(self, params: np.ndarray) -> np.ndarray:
+        """(n, 65) -> (n, 63) z_shape (``f2l build-prior --model ae`` fits the GMM on these)."""
+        return np.atleast_2d(np.asarray(params, dtype=np.float64))[:, self.shape_slice]
+
+    def prior_nll(self, params: torch.Tensor) -> torch.Tensor:
+        """(B, 65) -> (B,) GMM negative log-likelihood of z_shape (0 without a prior)."""
+        return self.prior_nll_shape(params[:, self.shape_slice])
+
+    def prior_nll_shape(self, z_shape: torch.Tensor) -> torch.Tensor:
+        """(B, 63) -> (B,) GMM negative log-likelihood (0 without a prior)."""
+        if self.prior is None:
+            return torch.zeros(z_shape.shape[0], dtype=z_shape.dtype)
+        return self.prior.nll_torch(z_shape)
+
+    def centroids(self, k: int = MAX_PRIOR_COMPONENTS) -> np.ndarray:
+        """(K, 63) z_shape of the heaviest GMM components (the zero code without a prior)."""
+        if self.prior is None:
+            return np.zeros((1, 63))
+        order = np.argsort(-self.prior.weights)[:k]
+        return np.array(self.prior.means[order])
+
+    def search_codes(self, k: int = MAX_PRIOR_COMPONENTS, spread: float = 1.5) -> np.ndarray:
+        """(3K, 63) start codes of the face estimator's search: each of the K heaviest GMM
+        components' mean and the two points ``spread`` standard deviations along its first
+        principal axis (on the shipped prior, the components are bands of sun elevation ~15 deg
+        apart and the axis moves the sun within a band)."""
+        if self.prior is None:
+            return np.zeros((1, 63))
+        out = []
+        for j in np.argsort(-self.prior.weights)[:k]:
+            w, v = np.linalg.eigh(self.prior.covariances[j])
+            axis = math.sqrt(max(float(w[-1]), 0.0)) * v[:, -1]
+            mean = self.prior.means[j]
+            out += [mean, mean - spread * axis, mean + spread * axis]
+        return np.asarray(out)
+
+    def initial_points(self) -> np.ndarray:
+        """(K x 4, 65): each GMM centroid at 4 azimuths (+-45, +-135 deg), unit exposure."""
+        starts = [[0.0, *z, az] for z in self.centroids() for az in START_AZIMUTHS_RAD]
+        return np.asarray(starts, dtype=np.float64)
+
+    # -- evaluation ----------------------------------------------------------------------------------
+    def sky(self, params: torch.Tensor) -> torch.Tensor:
+        """(B, 65) -> (B, 3, rows, W) float32 sky on the grid's sky rows (channel-first)."""
+        from f2l.ae.encoding import decode_torch, rotate_columns
+
+        p = params.to(torch.float32)
+        sky = decode_torch(self.decoder(p[:, self.shape_slice]), p[:, self.exposure_index])
+        sky = rotate_columns(sky, p[:, self.azimuth_index])
+        if self._resample is not None:
+            rows, cols = self._resample
+            sky = torch.einsum("ih,bchw,jw->bcij", rows, sky, cols)
+        return sky
+
+    def radiance(self, params: torch.Tensor) -> torch.Tensor:
+        """(B, 65) -> (B, L, 3): the sky on the upper rows, 0 below the horizon."""
+        sky = self.sky(params)
+        flat = sky.flatten(2).transpose(1, 2)
+        out = torch.nn.functional.pad(flat, (0, 0, 0, self.grid.size - flat.shape[1]))
+        return out.to(params.dtype)
+
+    def sun_direction(self, params: np.ndarray) -> np.ndarray:
+        """The decoded probe's sun: the Y dOmega-weighted mean direction within 5 deg of its
+        brightest sky texel (``f2l.metrics.lighting.sun_direction``)."""
+        from f2l.metrics.lighting import sun_direction
+
+        return sun_direction(self.probe(np.asarray(params, dtype=np.float64)), self.grid)
+
+    # -- probes (fit-probe, paper Table 1) -------------------------------------------------------------
+    def encode_probe(self, probe: np.ndarray) -> np.ndarray:
+        """(65,) feed-forward parameters of a full-sphere lat-long probe (H, 2H, 3): its sun
+        azimuth, exposure and the encoder's code of its sun-centred sky (AE_FF)."""
+        from f2l.ae.encoding import centred_sky, encode, full_sphere
+
+        sky, azimuth = centred_sky(full_sphere(probe, "probe"))
+        e, log_s = encode(sky)
+        with torch.no_grad():
+            z = self.network.eval().encode(torch.from_numpy(e)[None])[0].double().numpy()
+        return np.concatenate([[log_s], z, [azimuth]])
+
+    def fit_to_probe(self, probe: np.ndarray, **options):
+        """``fit_probe`` for this model: f2l.ae.probe_fit (result ``ae``, variant ``ae_ff``)."""
+        from f2l.ae.probe_fit import fit_ae_to_probe
+
+        return fit_ae_to_probe(self, probe, **options)

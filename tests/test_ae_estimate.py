@@ -1,0 +1,107 @@
+"""The shipped sky-autoencoder model: face estimation (f2l.ae.estimate through f2l.estimate.estimate) and
+probe fits (fit-probe's ae / ae_ff), on skies of the autoencoder's own corpus generator."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from f2l.ae.corpus import random_ae_sky
+from f2l.estimate import EstimatorConfig, FaceObservation, estimate
+from f2l.estimate.prior_build import fit_probes, write_fit_report
+from f2l.estimate.probe_fit import fit_probe
+from f2l.io.exr import write_exr
+from f2l.lighting.grid import LatLongGrid, angles_from_direction
+from f2l_builtin_models.ae import DEFAULT_WEIGHTS, AE
+
+GRID = LatLongGrid(64, 128)
+
+
+def _clear_sky(seed_from: int, kind: str = "clear", min_elevation: float = 15.0, max_elevation: float = 60.0):
+    """The first corpus sky of ``kind`` with the sun between the given elevations, from seed ``seed_from``."""
+    for seed in range(seed_from, seed_from + 500):
+        probe, info = random_ae_sky(GRID, np.random.default_rng(seed))
+        if info["kind"] == kind and min_elevation <= info["sun_elevation_deg"] <= max_elevation:
+            return probe, info
+    raise AssertionError("no such sky")
+
+
+def _azimuth_error_deg(a: float, b: float) -> float:
+    return abs(math.degrees((a - b + math.pi) % (2 * math.pi) - math.pi))
+
+
+@pytest.fixture(scope="module")
+def model(monkeypatch_module=None):
+    assert DEFAULT_WEIGHTS.is_file(), "shipped weights missing: make ae-weights"
+    return AE(GRID)
+
+
+@pytest.fixture(scope="module")
+def face_under_corpus_sky():
+    from f2l.synth.render import render_face
+
+    probe, info = _clear_sky(1000)
+    sun = np.asarray(info["sun_direction"])
+    face = render_face(GRID, probe, np.random.default_rng(4), image_size=96, head_pose_deg=(5.0, -10.0, 0.0),
+                       sun_direction=sun, sky_info=info)
+    return face, info
+
+
+def test_estimate_recovers_the_sun_azimuth_of_a_corpus_sky(model, face_under_corpus_sky):
+    face, info = face_under_corpus_sky
+    obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, GRID)
+    res = estimate(obs, model, EstimatorConfig(threads=2))
+    assert res.params.shape == (65,) and res.param_names[0] == "z00_log_exposure"
+    assert res.probe.shape == (64, 128, 3) and np.isfinite(res.probe).all() and res.probe.min() >= 0
+    # the ground bounce is the estimator's: constant below the horizon, rho_g E_h / pi
+    assert np.allclose(res.probe[32:], res.probe[40, 7], rtol=1e-5) and 0 < res.ground_albedo < 1
+    assert np.all((res.albedo > 0) & (res.albedo <= 1))
+    _, est_az = angles_from_direction(res.sun_direction)
+    assert _azimuth_error_deg(float(est_az), math.radians(info["sun_azimuth_deg"])) < 20.0
+    # phi_sun (the last parameter) is where the decoded sun was turned to
+    assert _azimuth_error_deg(res.params[-1], math.radians(info["sun_azimuth_deg"])) < 25.0
+    assert res.timings["starts"] >= 1 and res.iterations > 0
+
+
+def test_fit_probe_gives_the_feed_forward_and_the_optimised_fit(model):
+    probe, info = _clear_sky(2000)
+    fit = fit_probe(probe, model, max_iter=25)
+    ff = fit.variants["ae_ff"]
+    assert fit.loss <= ff.loss + 1e-9  # the optimisation starts at the feed-forward code
+    true_az = math.radians(info["sun_azimuth_deg"])
+    assert _azimuth_error_deg(ff.params[-1], true_az) < 3.0  # phi_sun of AE_FF: the probe's sun azimuth
+    for f in (ff, fit):
+        assert f.probe.shape == (64, 128, 3) and np.isfinite(f.probe).all()
+        _, az = angles_from_direction(f.sun_direction)
+        assert _azimuth_error_deg(float(az), true_az) < 5.0
+    # the exposure is carried through: a 1000x brighter probe gives z_0 + log(1000)
+    ff2 = fit_probe(probe * 1000.0, model, max_iter=0).variants["ae_ff"]
+    assert math.isclose(ff2.params[0] - ff.params[0], math.log(1000.0), rel_tol=1e-6)
+    assert np.allclose(ff2.params[1:], ff.params[1:], atol=1e-3)
+
+
+def test_fit_probe_report_has_ae_and_ae_ff_rows(model, tmp_path):
+    probe, _ = _clear_sky(3000)
+    write_exr(tmp_path / "sky.exr", probe)
+    records = fit_probes([tmp_path / "sky.exr"], model, max_iter=10)
+    assert records[0].status == "ok", records[0].message
+    assert set(records[0].extra["variants"]) == {"ae_ff"}
+    summary = write_fit_report(records, model, tmp_path / "report")
+    fits = [row["model"] for row in summary["metrics"]]
+    assert fits == ["ae", "ae_ff"]
+    assert "| ae_ff | 1 |" in summary["markdown"] and "Sun-dω MAE (l)" in summary["markdown"]
+    header = (tmp_path / "report" / "fit_probe.csv").read_text().splitlines()[0]
+    assert "ae_ff Full-dω MAE (l)" in header and "z00_log_exposure" in header
+
+
+def test_radiance_on_another_grid_keeps_the_energy(model):
+    coarse = AE(LatLongGrid(32, 64))
+    p = torch.as_tensor(model.initial_points()[:2])
+    fine = model.radiance(p).reshape(2, 64, 128, 3).numpy()
+    small = coarse.radiance(p).reshape(2, 32, 64, 3).numpy()
+    e_fine = np.einsum("bhwc,hw->bc", fine, GRID.solid_angles)
+    e_small = np.einsum("bhwc,hw->bc", small, LatLongGrid(32, 64).solid_angles)
+    assert np.allclose(e_fine, e_small, rtol=1e-4)
