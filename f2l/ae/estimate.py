@@ -84,14 +84,10 @@ class LatentSkyProblem:
     # -- forward -----------------------------------------------------------------------------------------
     def shape_sky(self, z_shape: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
         """(B, 3, rows, W) sky of unit exposure on the grid: R(phi) max(D(z), 0)^3."""
-        model = self.model
-        sky = decode_unit(model.decoder(z_shape))
+        sky = decode_unit(self.model.decoder(z_shape))
         if azimuth is not None:
             sky = rotate_columns(sky, azimuth)
-        if model._resample is not None:
-            r, c = model._resample
-            sky = torch.einsum("ih,bchw,jw->bcij", r, sky, c)
-        return sky
+        return self.model.to_grid(sky)
 
     def block_means(self, sky: torch.Tensor) -> torch.Tensor:
         """(B, 3, rows, W) -> (B, 3, nbr, nbc) solid-angle-weighted block means."""
@@ -125,13 +121,13 @@ class LatentSkyProblem:
         """(codes (K, 63), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached
         on the model (they do not depend on the face)."""
         model = self.model
-        cache = model.__dict__.setdefault("_search_cache", {})
-        if "skies" not in cache:
+        cache = getattr(model, "_latent_search_cache", None)
+        if cache is None:
             codes = model.search_codes()
             with torch.no_grad():
-                cache["codes"] = codes
-                cache["skies"] = self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None)
-        return cache["codes"], cache["skies"]
+                cache = (codes, self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None))
+            model._latent_search_cache = cache
+        return cache
 
     @staticmethod
     def _psi_score(tl: torch.Tensor, y: torch.Tensor, scale: float) -> tuple[torch.Tensor, torch.Tensor]:

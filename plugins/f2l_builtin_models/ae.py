@@ -152,11 +152,15 @@ class AE(LightingModel):
 
         p = params.to(torch.float32)
         sky = decode_torch(self.decoder(p[:, self.shape_slice]), p[:, self.exposure_index])
-        sky = rotate_columns(sky, p[:, self.azimuth_index])
-        if self._resample is not None:
-            rows, cols = self._resample
-            sky = torch.einsum("ih,bchw,jw->bcij", rows, sky, cols)
-        return sky
+        return self.to_grid(rotate_columns(sky, p[:, self.azimuth_index]))
+
+    def to_grid(self, sky: torch.Tensor) -> torch.Tensor:
+        """(B, 3, 32, 128) network sky -> (B, 3, rows, W) on the grid's sky rows (area resampling;
+        the identity on 64 x 128)."""
+        if self._resample is None:
+            return sky
+        rows, cols = self._resample
+        return torch.einsum("ih,bchw,jw->bcij", rows, sky, cols)
 
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
         """(B, 65) -> (B, L, 3): the sky on the upper rows, 0 below the horizon."""
