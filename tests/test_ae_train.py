@@ -221,6 +221,12 @@ def test_cli_commands(tmp_path):
                               "--grid", "16x32", "--json"])
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout) == {"out": str(tmp_path / "c"), "train": 6, "heldout": 2}
+    res = runner.invoke(app, ["ae-corpus", "--out", str(tmp_path / "h"), "--n-train", "6", "--n-heldout", "2",
+                              "--grid", "16x32", "--split", "heldout", "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["train"] == 0 and not (tmp_path / "h" / "train").exists()
+    for i in range(2):  # the held-out skies of the full corpus, byte for byte
+        name = f"heldout/sky_{i:05d}.exr"
+        assert (tmp_path / "h" / name).read_bytes() == (tmp_path / "c" / name).read_bytes()
     res = runner.invoke(app, ["train-ae", str(tmp_path / "c" / "train"), "--out", str(tmp_path / "w.npz"),
                               "--epochs", "1", "--batch-size", "4", "--components", "1", "--threads", "1", "--json"])
     assert res.exit_code == 0, res.output

@@ -1,5 +1,6 @@
 """Synthetic DNG writer, RAW metadata/mosaic reading, bilinear demosaic (f2l.capture.dng, .raw_meta)."""
 
+import dataclasses
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -54,6 +55,41 @@ def test_write_dng_round_trip_is_bit_exact(tmp_path):
     assert meta.gps_altitude_m == pytest.approx(1200.0)
     np.testing.assert_allclose(np.reshape(meta.xyz_to_camera, (3, 3))[0], [3.2405, -1.5371, -0.4985])
     assert read_raw_metadata(path, levels=False) == meta  # a DNG states its layout in tags: no decode needed
+
+
+@pytest.mark.parametrize("cfa", BAYER_PATTERNS)
+def test_lossless_jpeg_dng_decodes_bit_exactly_and_is_smaller(tmp_path, cfa):
+    raw = np.clip(np.add.outer(np.arange(96) * 20, np.arange(128) * 15) + _random_mosaic(1, white=40), 0, 4095)
+    raw = raw.astype(np.uint16)
+    kwargs = dict(exposure_s=0.01, f_number=8, iso=100, black_level=[250, 251, 252, 253], cfa=cfa)
+    plain = write_dng(tmp_path / "plain.dng", raw, **kwargs)
+    packed = write_dng(tmp_path / "packed.dng", raw, compression="ljpeg", **kwargs)
+    assert packed.stat().st_size < 0.6 * plain.stat().st_size
+    with open(packed, "rb") as fh:
+        assert exifread.process_file(fh, details=False)["Image Compression"].values == [7]  # JPEG (lossless)
+    meta, mosaic = read_raw(packed)
+    np.testing.assert_array_equal(mosaic, raw)
+    assert meta == dataclasses.replace(read_raw(plain)[0], path=str(packed))
+    with pytest.raises(ValueError, match="compression"):
+        write_dng(tmp_path / "bad.dng", raw, compression="zip", **kwargs)
+
+
+def test_dng_levels_come_from_tags_without_a_decode(tmp_path, monkeypatch):
+    import f2l.capture.raw_meta as raw_meta
+
+    path = write_dng(tmp_path / "a.dng", _random_mosaic(2), exposure_s=0.01, f_number=8, iso=100,
+                     black_level=[10, 20, 30, 40], cfa="GBRG", compression="ljpeg")
+    decoded = read_raw_metadata(path)
+    monkeypatch.setattr(raw_meta, "read_raw", lambda *a, **k: pytest.fail("decoded a DNG that states its levels"))
+    assert read_raw_metadata(path) == decoded
+    assert decoded.black_levels == (10.0, 20.0, 30.0, 40.0) and decoded.cfa_pattern == "GBRG"
+    with open(path, "rb") as fh:
+        tags = exifread.process_file(fh, details=False)
+    assert raw_meta._dng_layout(tags) == ("GBRG", (10.0, 20.0, 30.0, 40.0), 4095.0)
+    for extra in ("Image Tag 0xC61B", "Image Tag 0xC618", "Image Tag 0xC68D"):  # black deltas, linearisation, ActiveArea
+        assert raw_meta._dng_layout({**tags, extra: tags["Image BlackLevel"]}) is None
+    assert raw_meta._dng_layout({k: v for k, v in tags.items() if k != "Image Tag 0xC612"}) is None  # not a DNG
+    assert raw_meta._dng_layout({**tags, "Image SubfileType": tags["Image Orientation"]}) is None  # a thumbnail IFD
 
 
 def test_write_bracket_is_deterministic_and_follows_the_sensor_model(tmp_path):

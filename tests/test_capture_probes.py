@@ -152,11 +152,12 @@ def test_downsample_view_preserves_radiance_and_flags_blocks():
     assert same is rgb and same_sat is sat
 
 
-def test_bench_capture_runs_the_real_stages():
+@pytest.mark.parametrize("compression", ["ljpeg", "none"])
+def test_bench_capture_runs_the_real_stages(compression):
     from f2l.capture.bench import format_table, run_capture_bench
 
-    (row,) = run_capture_bench((1,), frames=2, megapixels=0.05, repeat=1)
-    assert row["files"] == 2 and row["decode_s"] > 0 and row["ingest_s"] > 0 and row["merge_s"] > 0
+    (row,) = run_capture_bench((1,), frames=2, megapixels=0.05, repeat=1, compression=compression)
+    assert row["files"] == 2 and row["compression"] == compression and row["decode_s"] > 0 and row["ingest_s"] > 0 and row["merge_s"] > 0
     assert row["ratio"] == pytest.approx((row["ingest_s"] + row["merge_s"]) / row["decode_s"])
     assert all(row["peak_mib"][k] >= row["work_mib"][k] >= 0 for k in ("decode", "ingest", "merge"))
     assert "(ingest+merge)/decode" in format_table([row])

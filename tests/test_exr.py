@@ -37,6 +37,16 @@ def test_round_trip_bit_exact(tmp_path):
     np.testing.assert_array_equal(chans["G"].pixels, img[:, :, 1])
 
 
+def test_uncompressed_round_trip_and_unknown_codec(tmp_path):
+    img = _hdr()
+    write_exr(tmp_path / "plain.exr", img, compression="none")
+    np.testing.assert_array_equal(read_exr(tmp_path / "plain.exr"), img)
+    assert OpenEXR.File(str(tmp_path / "plain.exr")).header()["compression"] == OpenEXR.NO_COMPRESSION
+    with pytest.raises(ValueError, match="compression"):
+        write_exr(tmp_path / "bad.exr", img, compression="jpeg")
+    assert not (tmp_path / "bad.exr").exists()
+
+
 def test_float64_and_grayscale_input(tmp_path):
     img64 = RNG.random((8, 12, 3)) * 1e5
     write_exr(tmp_path / "a.exr", img64)

@@ -24,6 +24,9 @@ def ae_corpus_cmd(
     n_heldout: int = typer.Option(150, "--n-heldout", help="Held-out skies (never trained on)."),
     seed: int = typer.Option(0, help="Seed (the corpus is deterministic from it)."),
     grid: str = typer.Option("128x256", help="Probe grid HxW (full sphere)."),
+    split: list[str] = typer.Option(["train", "heldout"], "--split",
+                                    help="Write only these splits (repeatable): 'heldout' alone gives the "
+                                         "held-out skies of the same full corpus, for evaluation."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Write the autoencoder's sky corpus: Preetham clear skies (all sun elevations and turbidities),
@@ -42,9 +45,11 @@ def ae_corpus_cmd(
     if not json_out:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_train + n_heldout, desc="ae-corpus", unit="sky", file=sys.stderr)
+        total = (n_train if "train" in split else 0) + (n_heldout if "heldout" in split else 0)
+        bar = tqdm(total=total, desc="ae-corpus", unit="sky", file=sys.stderr)
     try:
-        paths = write_ae_corpus(out, n_train, n_heldout, seed=seed, grid=g, progress=None if bar is None else bar.update)
+        paths = write_ae_corpus(out, n_train, n_heldout, seed=seed, grid=g, progress=None if bar is None else bar.update,
+                                splits=tuple(dict.fromkeys(split)))
     except ValueError as exc:
         _fail(str(exc))
     finally:

@@ -119,10 +119,15 @@ def recipe(n_train: int, n_heldout: int, seed: int, grid: LatLongGrid) -> dict:
 
 
 def write_ae_corpus(out_dir: str | Path, n_train: int, n_heldout: int, seed: int = 0,
-                    grid: LatLongGrid = DEFAULT_GRID, progress: Callable | None = None) -> dict:
+                    grid: LatLongGrid = DEFAULT_GRID, progress: Callable | None = None,
+                    splits: tuple[str, ...] = ("train", "heldout")) -> dict:
     """Write the corpus (module docstring); returns {"train": [paths], "heldout": [paths]}.
 
-    Existing files with the same recipe are kept (a rerun completes an interrupted corpus)."""
+    Existing files with the same recipe are kept (a rerun completes an interrupted corpus).
+    ``splits`` limits what is written: ``("heldout",)`` gives exactly the held-out skies of the
+    full corpus (each sky has its own seed child) without its training skies, for evaluation."""
+    if not splits or any(s not in ("train", "heldout") for s in splits):
+        raise ValueError(f"splits must be a non-empty subset of ('train', 'heldout'), got {splits!r}")
     from f2l.io.exr import write_exr
 
     out = Path(out_dir)
@@ -138,6 +143,8 @@ def write_ae_corpus(out_dir: str | Path, n_train: int, n_heldout: int, seed: int
     paths: dict[str, list[Path]] = {"train": [], "heldout": []}
     for i, child in enumerate(children):
         split, index = ("train", i) if i < n_train else ("heldout", i - n_train)
+        if split not in splits:
+            continue
         path = out / split / f"sky_{index:05d}.exr"
         side = path.with_suffix(".json")
         if not (path.exists() and side.exists()):

@@ -2,7 +2,8 @@
 and peak memory as the number of brackets grows.
 
 A synthetic capture tree (``brackets`` × ``frames`` real DNGs of ``megapixels`` each, written by
-:func:`f2l.capture.dng.write_bracket` from a sky scene with a clipped sun) is timed three ways,
+:func:`f2l.capture.dng.write_bracket` from a sky scene with a clipped sun; lossless-JPEG compressed
+like camera RAWs by default, or uncompressed, where the decode is little more than a file read) is timed three ways,
 each in a fresh child process so that one's memory never counts against another's:
 
 * bare decode: ``rawpy.imread(path).raw_image_visible`` for every file (the floor);
@@ -56,7 +57,8 @@ print(json.dumps({"seconds": time.perf_counter() - t0, "peak_rss_mib": peak_mib,
 """
 
 
-def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: int = 0) -> int:
+def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: int = 0,
+               compression: str = "ljpeg") -> int:
     """``brackets`` sessions of one ``frames``-frame bracket each; returns the number of files."""
     from f2l.capture.dng import synthetic_sky_scene, write_bracket
 
@@ -66,7 +68,8 @@ def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: 
     exposures = [2.0 ** (2 * k - 2 * frames) for k in range(frames)]
     for b in range(brackets):
         write_bracket(root / f"site{b:04d}" / "sky", scene, exposures, seed=seed + b,
-                      full_scale_radiance=float(np.percentile(scene, 50)) * 4.0 * max(exposures) / 64)
+                      full_scale_radiance=float(np.percentile(scene, 50)) * 4.0 * max(exposures) / 64,
+                      compression=compression)
     return brackets * frames
 
 
@@ -77,14 +80,14 @@ def _child(mode: str, root: Path, work: Path) -> dict:
 
 
 def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
-                      repeat: int = 2) -> list[dict]:
+                      repeat: int = 2, compression: str = "ljpeg") -> list[dict]:
     """One row per tree size: files, decode / ingest / merge seconds (best of ``repeat``),
     the (ingest + merge) / decode ratio and each stage's peak memory."""
     rows = []
     for n in sizes:
         with tempfile.TemporaryDirectory(prefix="f2l-bench-capture-") as tmp:
             root = Path(tmp) / "raw"
-            files = write_tree(root, n, frames, megapixels)
+            files = write_tree(root, n, frames, megapixels, compression=compression)
             best: dict[str, dict] = {}
             for _ in range(max(1, repeat)):
                 work = Path(tmp) / f"work-{time.monotonic_ns()}"
@@ -93,7 +96,7 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
                     if mode not in best or r["seconds"] < best[mode]["seconds"]:
                         best[mode] = r
             d, i, m = (best[k]["seconds"] for k in ("decode", "ingest", "merge"))
-            rows.append({"brackets": n, "files": files, "megapixels": megapixels,
+            rows.append({"brackets": n, "files": files, "megapixels": megapixels, "compression": compression,
                          "decode_s": d, "ingest_s": i, "merge_s": m,
                          "ratio": (i + m) / d if d > 0 else float("inf"),
                          "files_per_s": files / (i + m),
@@ -103,12 +106,12 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = ["| brackets | files | MP/file | bare decode s | ingest s | merge s | (ingest+merge)/decode "
+    lines = ["| brackets | files | MP/file | DNG | bare decode s | ingest s | merge s | (ingest+merge)/decode "
              "| files/s | peak MiB decode / ingest / merge | above imports MiB decode / ingest / merge |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, q = r["peak_mib"], r["work_mib"]
-        lines.append(f"| {r['brackets']} | {r['files']} | {r['megapixels']:.1f} | {r['decode_s']:.2f} "
+        lines.append(f"| {r['brackets']} | {r['files']} | {r['megapixels']:.1f} | {r['compression']} | {r['decode_s']:.2f} "
                      f"| {r['ingest_s']:.2f} | {r['merge_s']:.2f} | {r['ratio']:.2f}x "
                      f"| {r['files_per_s']:.1f} | {p['decode']} / {p['ingest']} / {p['merge']} "
                      f"| {q['decode']} / {q['ingest']} / {q['merge']} |")

@@ -88,10 +88,18 @@ def bench_capture_cmd(
     frames: int = typer.Option(5, help="Frames per bracket."),
     megapixels: float = typer.Option(2.0, help="Megapixels per synthetic DNG."),
     repeat: int = typer.Option(2, help="Best of this many runs."),
+    compression: list[str] = typer.Option(["ljpeg"], "--compression",
+                                          help="DNG compression: ljpeg (as cameras write RAWs) or none; repeatable."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
 ) -> None:
     """Ingest + merge time against a bare LibRaw decode of the same DNGs, and peak memory per tree size."""
     from f2l.capture.bench import format_table, run_capture_bench
 
-    rows = run_capture_bench(tuple(brackets), frames=frames, megapixels=megapixels, repeat=repeat)
+    from f2l.capture.dng import COMPRESSIONS
+
+    bad = [c for c in compression if c not in COMPRESSIONS]
+    if bad:
+        raise typer.BadParameter(f"{bad[0]!r}: expected one of {', '.join(COMPRESSIONS)}", param_hint="--compression")
+    rows = [row for c in compression for row in run_capture_bench(tuple(brackets), frames=frames, megapixels=megapixels,
+                                                                  repeat=repeat, compression=c)]
     typer.echo(json.dumps(rows) if json_out else format_table(rows))

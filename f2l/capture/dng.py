@@ -12,7 +12,8 @@ Sensor model of :func:`write_bracket`, per frame with exposure factor ``e = t * 
 - Read noise: Gaussian, ``read_noise_dn`` standard deviation. Then ``+ black``, rounding, clipping to
   [0, white] and uint16: a pixel brighter than white reads exactly ``white_level``.
 
-Files are uncompressed 16-bit DNG 1.4, CFA in IFD0, exposure/ISO/time/lens in an EXIF sub-IFD,
+Files are 16-bit DNG 1.4, uncompressed or (``compression="ljpeg"``) lossless-JPEG (ITU T.81 process
+14, "LJ92", as camera RAWs and Adobe's DNG Converter store them; encoded by ``imagecodecs``), CFA in IFD0, exposure/ISO/time/lens in an EXIF sub-IFD,
 optional GPS sub-IFD. Nothing depends on the clock: the same arguments give the same bytes.
 ``camera_matrix`` is ColorMatrix1 (CIE XYZ -> camera RGB, D65); the default makes camera RGB equal
 linear Rec.709, so scenes can be given directly in Rec.709.
@@ -27,6 +28,10 @@ from datetime import datetime, timedelta
 from fractions import Fraction
 from pathlib import Path
 
+import sys
+import types
+from unittest import mock
+
 import numpy as np
 from pidng.core import RAW2DNG, DNGTags, Tag
 from pidng.defs import CalibrationIlluminant, PhotometricInterpretation
@@ -36,6 +41,8 @@ from f2l.capture.raw_meta import BAYER_PATTERNS, XYZ_TO_REC709, bayer_mosaic
 from f2l.io.atomic import atomic_path
 
 __all__ = ["write_dng", "write_bracket", "synthetic_sky_scene"]
+
+COMPRESSIONS = ("none", "ljpeg")
 
 _COLOUR_INDEX = {"R": 0, "G": 1, "B": 2}
 _GPS_IFD = (34853, Type.IFD)
@@ -50,6 +57,19 @@ class _IfdTag(dngTag):
             self.Value, self.subIFD = b"\x00\x00\x00\x00", value[0]
         else:
             super().setValue(value)
+
+
+def _lj92_tile(raw: np.ndarray, width: int, height: int, bits: int, *_unused) -> bytes:
+    """pidng's lossless-JPEG hook (its own C extension fails to import on Python >= 3.10): the
+    mosaic re-read as ``height`` rows of ``width`` samples (pidng passes two CFA rows per JPEG row),
+    one component, predictor 1."""
+    import imagecodecs
+
+    return imagecodecs.ljpeg_encode(np.ascontiguousarray(raw).reshape(height, width), bitspersample=bits)
+
+
+_LJ92 = types.ModuleType("ljpegCompress")  # the module pidng imports when compress=True
+_LJ92.pack16tolj = _lj92_tile
 
 
 def _rational(value: float, max_denominator: int = 1_000_000) -> list[int]:
@@ -113,14 +133,17 @@ def write_dng(
     focal_length_mm: float | None = None,
     timestamp: datetime = datetime(2024, 6, 21, 12, 0, 0),
     gps: tuple[float, float, float | None] | None = None,
+    compression: str = "none",
 ) -> Path:
-    """Write a (H, W) uint16 CFA mosaic as an uncompressed DNG, atomically; returns the path.
+    """Write a (H, W) uint16 CFA mosaic as a DNG, atomically; returns the path.
 
     Exposure values are stored as TIFF rationals (denominators up to 1e6 for seconds, 1e3 for the
     f-number); ``black_level`` is one value or four (per 2x2 CFA position, row-major); an aware
     ``timestamp`` also records OffsetTimeOriginal; ``gps`` is (latitude_deg, longitude_deg,
-    altitude_m or None).
+    altitude_m or None). ``compression``: "none" or "ljpeg" (lossless; LibRaw decodes it bit-exactly).
     """
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
     raw = np.asarray(raw)
     blacks = [int(black_level)] * 4 if np.ndim(black_level) == 0 else [int(b) for b in black_level]
     if raw.dtype != np.uint16 or raw.ndim != 2 or min(raw.shape) < 2:
@@ -161,9 +184,9 @@ def write_dng(
     if gps is not None:
         tags.__tags__[_GPS_IFD] = _IfdTag(_GPS_IFD, [_gps_ifd(gps)])
     writer = RAW2DNG()
-    writer.options(tags, path="", compress=False)
+    writer.options(tags, path="", compress=compression == "ljpeg")
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with mock.patch.dict(sys.modules, {"ljpegCompress": _LJ92}), atomic_path(path) as tmp:
         Path(tmp).write_bytes(bytes(writer.convert(raw)))
     return path
 
@@ -192,7 +215,8 @@ def write_bracket(
     ``scene_rgb`` is (H, W, 3) radiance (>= 0, any absolute scale, see ``full_scale_radiance``) or
     one such image per frame (to simulate motion). ``f_number`` and ``iso`` are one value or one per
     frame. Frame ``i`` is ``f"{prefix}_{i:02d}.dng"`` taken at ``timestamp + i * interval_s``.
-    ``dng_kwargs`` (camera_matrix, make, model, lens, focal_length_mm, gps) go to :func:`write_dng`.
+    ``dng_kwargs`` (camera_matrix, make, model, lens, focal_length_mm, gps, compression) go to
+    :func:`write_dng`.
     """
     n = len(exposures_s)
     scenes = [np.asarray(s, dtype=np.float64) for s in scene_rgb] if not isinstance(scene_rgb, np.ndarray) or (

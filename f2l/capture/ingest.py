@@ -4,9 +4,10 @@ What a row says about a file, and how it is decided:
 
 * **kind** from the extension: camera RAW (anything LibRaw opens: CR2, CR3, NEF, ARW, DNG, ...),
   ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``).
-* **metadata**: RAW through :func:`f2l.capture.raw_meta.read_raw_metadata` (exifread, and one
-  LibRaw decode, because LibRaw reports black/white levels and the CFA only after unpacking: a
-  Canon's black level is measured on masked pixels); images through exifread and Pillow's
+* **metadata**: RAW through :func:`f2l.capture.raw_meta.read_raw_metadata` (exifread; levels and
+  CFA from the tags of a DNG that states them completely, else one LibRaw decode, because LibRaw
+  reports black/white levels and the CFA only after unpacking: a Canon's black level is measured
+  on masked pixels); images through exifread and Pillow's
   header, EXR through OpenEXR's header, ``.hdr`` through its text header (no pixel decode).
 * **session** (one site): each top-level sub-folder of DIR is a session; files directly in DIR
   are split into sessions where consecutive capture times are more than ``session_gap_min``

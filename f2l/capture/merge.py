@@ -244,8 +244,11 @@ def _estimate_shift(ya: np.ndarray, yb: np.ndarray, lo: float, hi: float) -> tup
     """Translation d (rows, cols, quads) with ya(x) ~ yb(x - d), on quad values clipped to [lo, hi].
 
     In the most textured 128 x 128 window: candidates zero and the three highest peaks of a
-    band-limited phase correlation of the log images; the one under which most samples agree wins
-    (a moving object can out-peak a weakly textured background). Then trimmed Gauss-Newton
+    band-limited phase correlation of the log images; the one with the smallest median relative
+    difference over the samples valid under every candidate wins (a moving object can out-peak a
+    weakly textured background but not move the median; a smooth gradient such as a sun's aureole
+    agrees within any loose tolerance at several shifts, so a count of agreeing samples cannot
+    rank them). Then trimmed Gauss-Newton
     (Lucas-Kanade) on the linear images over samples strictly inside (lo, hi) in both (quads
     touching a clipped area jump by a whole quad: no sub-pixel cue). Components within 3 standard
     errors of zero become zero; ``None`` when the error exceeds 0.25 quad or under 16 samples overlap.
@@ -267,16 +270,21 @@ def _estimate_shift(ya: np.ndarray, yb: np.ndarray, lo: float, hi: float) -> tup
         ok = (_sample(ok_b, -d) > 0.999) & _inside(b.shape, -d)
         return ok_a & (_erode2(ok) if erode else ok)
 
-    def agreeing(d) -> int:
-        bw = _sample(b, -d)
-        return int(np.count_nonzero(valid(d, erode=False) & (np.abs(a - bw) <= 0.05 * (a + bw))))
-
     candidates = [np.zeros(2)]
     for _ in range(3):
         iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
         candidates.append(np.array([(iy + ch / 2) % ch - ch / 2, (ix + cw / 2) % cw - cw / 2]))
         corr[np.ix_(np.arange(iy - 2, iy + 3) % ch, np.arange(ix - 2, ix + 3) % cw)] = -np.inf
-    start = max(candidates[::-1], key=agreeing)
+    common = np.logical_and.reduce([valid(d, erode=False) for d in candidates])
+    if np.count_nonzero(common) >= 16:  # rank on the same samples: a shift that merely covers more never wins
+        def disagreement(d) -> float:
+            bw = _sample(b, -d)[common]
+            return float(np.median(np.abs(a[common] - bw) / (a[common] + bw + 1e-12)))
+
+        scores = [disagreement(d) for d in candidates]
+        start = candidates[int(np.argmin(scores))]  # first (zero) on ties
+    else:
+        start = candidates[0]
     d, ok = start.copy(), valid(start)
     if np.count_nonzero(ok) < 16:
         return None

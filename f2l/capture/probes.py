@@ -105,16 +105,24 @@ def _row(kind: str, name: str, session: str, status: str, message: str, **kw) ->
 
 def downsample_view(rgb: np.ndarray, saturated: np.ndarray, max_side: int):
     """Box-average (h, w, 3) by the smallest integer factor k with max(h, w) / k <= max_side
-    (a centred crop drops the h % k, w % k remainder); saturated if any pixel of the block is."""
+    (a centred crop drops the h % k, w % k remainder); saturated if any pixel of the block is.
+
+    The k * k strided sub-images are summed in float32 (k * k terms of one sign: relative error
+    below k * k * 6e-8), 25x faster than a float64 ``mean`` over a reshaped view."""
     h, w = rgb.shape[:2]
     k = max(1, -(-max(h, w) // int(max_side)))
     if k == 1:
         return rgb, saturated
     hh, ww = h // k * k, w // k * k
     r0, c0 = (h - hh) // 2, (w - ww) // 2
-    block = rgb[r0:r0 + hh, c0:c0 + ww].reshape(hh // k, k, ww // k, k, 3)
-    sat = saturated[r0:r0 + hh, c0:c0 + ww].reshape(hh // k, k, ww // k, k)
-    return block.mean(axis=(1, 3), dtype=np.float64).astype(np.float32), sat.any(axis=(1, 3))
+    crop, sat = rgb[r0:r0 + hh, c0:c0 + ww], saturated[r0:r0 + hh, c0:c0 + ww]
+    total, flag = np.zeros((hh // k, ww // k, 3), np.float32), np.zeros((hh // k, ww // k), bool)
+    for a in range(k):
+        for b in range(k):
+            total += crop[a::k, b::k]
+            flag |= sat[a::k, b::k]
+    total *= np.float32(1.0 / (k * k))
+    return total, flag
 
 
 def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
@@ -139,8 +147,8 @@ def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
         rgb = correct_vignetting(rgb, Vignetting(*k))
     rgb, saturated = downsample_view(rgb, merged.saturated, view_max_side)
     rel = f"views/{_safe(bid)}.exr"
-    write_exr(work / rel, rgb, metadata={"f2l_bracket": bid,
-                                         "f2l_units": "camera RGB, 1.0 = full scale at EV100 0"})
+    write_exr(work / rel, rgb, metadata={"f2l_bracket": bid, "f2l_units": "camera RGB, 1.0 = full scale at EV100 0"},
+              compression="none")  # an intermediate: float32 noise leaves ZIP 5% at 15x the time
     _write_mask_png(work / rel.replace(".exr", ".saturated.png"), saturated)
     warnings = "; ".join(merged.warnings) if merged.warnings else ""
     row = _row("view", bid, session, "ok", warnings, path=rel, frames=len(frames),

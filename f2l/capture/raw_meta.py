@@ -323,19 +323,27 @@ def read_raw_metadata(path: str | os.PathLike, *, levels: bool = True) -> RawMet
     """Exposure, camera and sensor-layout metadata of one RAW file (conventions above).
 
     LibRaw reports black/white levels and the CFA only after decoding the pixels (a Canon black
-    level is measured on masked pixels), so this costs a decode. ``levels=False`` skips it (about a
-    millisecond): the size comes from LibRaw's header, CFA and levels from DNG tags when the file
-    has them, else ``None``; exposure, aperture and ISO then come from EXIF alone.
+    level is measured on masked pixels), so for most formats this costs a decode. A DNG whose
+    first IFD holds the CFA mosaic and states its layout completely (:func:`_dng_layout`: 2x2 Bayer
+    CFAPattern, BlackLevel, WhiteLevel; no per-row/column black deltas, no linearisation table) is
+    read from its tags alone, about a millisecond: LibRaw takes those very tags. ``levels=False``
+    never decodes: CFA and levels come from DNG tags when the file has them, else ``None``;
+    exposure, aperture and ISO then come from EXIF alone.
     """
-    if levels:
-        return read_raw(path, mosaic=False)[0]
     path = os.fspath(path)
     fields, tags = _exif(path)
+    layout = _dng_layout(tags)
+    if levels and layout is None:
+        return read_raw(path, exif=fields, mosaic=False)[0]
     raw = _open_rawpy(path, unpack=False)
     try:
         width, height = int(raw.sizes.width), int(raw.sizes.height)
     finally:
         raw.close()
+    if layout is not None:
+        cfa, blacks, white = layout
+        return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=white, cfa_pattern=cfa,
+                       **fields)  # fmt: skip
     cfa, blacks = _values(tags, "Image CFAPattern"), _values(tags, "Image BlackLevel")
     try:
         cfa = "".join("RGB"[int(c)] for c in cfa) if cfa and not isinstance(cfa, str) and len(cfa) == 4 else None
@@ -345,6 +353,65 @@ def read_raw_metadata(path: str | os.PathLike, *, levels: bool = True) -> RawMet
         cfa, blacks = None, None
     return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=_number(
         tags, "Image WhiteLevel", "Image Tag 0xC61D"), cfa_pattern=cfa, **fields)  # fmt: skip
+
+
+_DNG_UNSUPPORTED = {  # DNG tags (exifread names or ids) whose presence LibRaw would apply beyond the basic levels
+    "LinearizationTable": ("Image LinearizationTable", "Image Tag 0xC618"),
+    "BlackLevelDeltaH": ("Image BlackLevelDeltaH", "Image Tag 0xC61B"),
+    "BlackLevelDeltaV": ("Image BlackLevelDeltaV", "Image Tag 0xC61C"),
+    "ActiveArea": ("Image ActiveArea", "Image Tag 0xC68D"),
+    "MaskedAreas": ("Image MaskedAreas", "Image Tag 0xC68E"),
+}
+
+
+def _ints(tags: dict, *names: str) -> list[int] | None:
+    values = _values(tags, *names)
+    if values is None or isinstance(values, str):
+        return None
+    try:
+        return [int(v) for v in values]
+    except (TypeError, ValueError):
+        return None
+
+
+def _dng_layout(tags: dict) -> tuple[str, tuple[float, ...], float] | None:
+    """(CFA, black levels per 2x2 position, white level) when a DNG's first IFD is its full-size CFA
+    mosaic and its tags state the layout exactly as LibRaw applies it; else ``None`` (decode).
+
+    Required: DNGVersion, SubfileType 0, PhotometricInterpretation CFA (32803), CFARepeatPatternDim
+    2x2 with an R/G/B Bayer CFAPattern (CFAPlaneColor 0, 1, 2 and CFALayout 1 if present),
+    BlackLevel of 1 value or 4 with BlackLevelRepeatDim 2x2, WhiteLevel. Refused: any of
+    :data:`_DNG_UNSUPPORTED` (a real camera DNG keeps its mosaic in a sub-IFD: decoded as before).
+    """
+    if _values(tags, "Image DNGVersion", "Image Tag 0xC612") is None:
+        return None
+    if (_ints(tags, "Image SubfileType", "Image NewSubfileType") or [0]) != [0]:
+        return None
+    if _ints(tags, "Image PhotometricInterpretation") != [32803]:
+        return None
+    if any(tags.get(name) is not None for names in _DNG_UNSUPPORTED.values() for name in names):
+        return None
+    if (_ints(tags, "Image CFAPlaneColor", "Image Tag 0xC616") or [0, 1, 2]) != [0, 1, 2]:
+        return None
+    if (_ints(tags, "Image CFALayout", "Image Tag 0xC617") or [1]) != [1]:
+        return None
+    cfa = _ints(tags, "Image CFAPattern")
+    if _ints(tags, "Image CFARepeatPatternDim") != [2, 2] or cfa is None or len(cfa) != 4 or max(cfa) > 2:
+        return None
+    pattern = "".join("RGB"[c] for c in cfa)
+    blacks = _values(tags, "Image BlackLevel", "Image Tag 0xC61A")
+    white = _number(tags, "Image WhiteLevel", "Image Tag 0xC61D")
+    if pattern not in BAYER_PATTERNS or blacks is None or isinstance(blacks, str) or len(blacks) not in (1, 4):
+        return None
+    if len(blacks) == 4 and _ints(tags, "Image BlackLevelRepeatDim", "Image Tag 0xC619") != [2, 2]:
+        return None
+    try:
+        levels = tuple(float(b) for b in list(blacks) * (4 // len(blacks)))
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    if white is None or not all(math.isfinite(b) and 0 <= b < white for b in levels):
+        return None
+    return pattern, levels, white
 
 
 def read_raw_mosaic(path: str | os.PathLike) -> np.ndarray:

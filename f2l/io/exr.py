@@ -56,16 +56,25 @@ def _as_rgb(image: np.ndarray, path) -> np.ndarray:
     return img32
 
 
-def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict[str, str] | None = None) -> None:
+EXR_COMPRESSIONS = {"zip": OpenEXR.ZIP_COMPRESSION, "none": OpenEXR.NO_COMPRESSION}
+"""Lossless codecs :func:`write_exr` offers. ZIP is the default; "none" is for large intermediates
+(a 1-MP float32 view: ZIP 0.16 s for 5% smaller, none 0.01 s)."""
+
+
+def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict[str, str] | None = None, *,
+              compression: str = "zip") -> None:
     """Write ``image`` (H, W, 3) or (H, W) (replicated to RGB) as a float32 RGB EXR.
 
-    FLOAT channels R, G, B, ZIP compression; ``metadata`` is stored as string header attributes
-    (names must not collide with standard EXR attributes). Atomic: a crash never leaves a
-    partial file at ``path``. Raises ValueError naming the path for NaN/inf/negative values.
+    FLOAT channels R, G, B, ``compression`` one of :data:`EXR_COMPRESSIONS`; ``metadata`` is stored
+    as string header attributes (names must not collide with standard EXR attributes). Atomic: a
+    crash never leaves a partial file at ``path``. Raises ValueError naming the path for
+    NaN/inf/negative values.
     """
     path = Path(path)
     img = _as_rgb(image, path)
-    header: dict = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if compression not in EXR_COMPRESSIONS:
+        raise ValueError(f"{path}: compression must be one of {sorted(EXR_COMPRESSIONS)}, got {compression!r}")
+    header: dict = {"compression": EXR_COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
     for key, value in (metadata or {}).items():
         if not isinstance(key, str) or not isinstance(value, str):
             raise ValueError(f"{path}: metadata must map str to str, got {key!r}: {type(value).__name__}")
