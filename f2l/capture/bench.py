@@ -9,7 +9,8 @@ each in a fresh child process so that one's memory never counts against another'
 * bare decode: ``rawpy.imread(path).raw_image_visible`` for every file (the floor);
 * ingest: ``f2l ingest`` (metadata incl. one LibRaw decode per RAW for the black/white levels,
   SHA-256, sessions and brackets; no content detection);
-* merge: ``f2l make-probes`` (one bracket in memory at a time, views written as EXR).
+* merge: ``f2l make-probes`` (one bracket in memory at a time, views written as EXR; each session's
+  session.toml places its view as an equidistant fisheye looking up, so sphere assembly runs too).
 
 Peak memory is the child's peak resident set size (``VmHWM``, reset after the imports through
 ``/proc/self/clear_refs``), and that peak minus the resident size right after the imports: what
@@ -34,7 +35,7 @@ import rawpy
 from f2l.capture.manifest import run_ingest
 from f2l.capture.probes import make_probes
 import f2l.capture.merge, f2l.capture.sphere, f2l.capture.raw_meta, f2l.io.exr, f2l.io.tables
-import f2l.metrics.lighting, exifread, PIL.Image, tqdm
+import f2l.metrics.lighting, exifread, PIL.Image, tqdm, pyarrow.dataset, pandas, jsonschema, scipy.fft
 mode, root, work = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
 def status_mib(key):
     with open("/proc/self/status") as fh:
@@ -50,10 +51,20 @@ if mode == "decode":
 elif mode == "ingest":
     run_ingest(root, work, detect_roles=False)
 else:
-    make_probes(root, work)
+    summary = make_probes(root, work)
+assembly_s = sum(r["seconds"] for r in summary.rows if r["kind"] == "probe") if mode == "merge" else 0.0
 peak_mib = status_mib("VmHWM")
-print(json.dumps({"seconds": time.perf_counter() - t0, "peak_rss_mib": peak_mib,
+print(json.dumps({"seconds": time.perf_counter() - t0, "assembly_s": assembly_s, "peak_rss_mib": peak_mib,
                   "work_mib": peak_mib - base_mib}))
+"""
+
+
+_SESSION_TOML = """[lens]
+projection = "equidistant"
+fov_deg = 180.0
+[[shots]]
+files = "sky/*"
+pitch_deg = 90.0
 """
 
 
@@ -67,6 +78,8 @@ def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: 
     scene = synthetic_sky_scene(h, w, seed=seed)
     exposures = [2.0 ** (2 * k - 2 * frames) for k in range(frames)]
     for b in range(brackets):
+        (root / f"site{b:04d}").mkdir(parents=True, exist_ok=True)
+        (root / f"site{b:04d}" / "session.toml").write_text(_SESSION_TOML)  # a fisheye at the zenith: placed, assembled
         write_bracket(root / f"site{b:04d}" / "sky", scene, exposures, seed=seed + b,
                       full_scale_radiance=float(np.percentile(scene, 50)) * 4.0 * max(exposures) / 64,
                       compression=compression)
@@ -81,8 +94,9 @@ def _child(mode: str, root: Path, work: Path) -> dict:
 
 def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
                       repeat: int = 2, compression: str = "ljpeg") -> list[dict]:
-    """One row per tree size: files, decode / ingest / merge seconds (best of ``repeat``),
-    the (ingest + merge) / decode ratio and each stage's peak memory."""
+    """One row per tree size: files, decode / ingest / merge / sphere-assembly seconds (best of
+    ``repeat``; ``make-probes`` = merge + assembly), the (ingest + merge) / decode ratio, the same
+    with assembly, and each stage's peak memory."""
     rows = []
     for n in sizes:
         with tempfile.TemporaryDirectory(prefix="f2l-bench-capture-") as tmp:
@@ -96,10 +110,12 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
                     if mode not in best or r["seconds"] < best[mode]["seconds"]:
                         best[mode] = r
             d, i, m = (best[k]["seconds"] for k in ("decode", "ingest", "merge"))
+            a = best["merge"]["assembly_s"]
             rows.append({"brackets": n, "files": files, "megapixels": megapixels, "compression": compression,
-                         "decode_s": d, "ingest_s": i, "merge_s": m,
-                         "ratio": (i + m) / d if d > 0 else float("inf"),
-                         "files_per_s": files / (i + m),
+                         "decode_s": d, "ingest_s": i, "merge_s": m - a, "assembly_s": a,
+                         "ratio": (i + m - a) / d if d > 0 else float("inf"),
+                         "ratio_with_assembly": (i + m) / d if d > 0 else float("inf"),
+                         "files_per_s": files / (i + m - a),
                          "peak_mib": {k: round(v["peak_rss_mib"], 1) for k, v in best.items()},
                          "work_mib": {k: round(v["work_mib"], 1) for k, v in best.items()}})
     return rows
@@ -107,12 +123,14 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
 
 def format_table(rows: list[dict]) -> str:
     lines = ["| brackets | files | MP/file | DNG | bare decode s | ingest s | merge s | (ingest+merge)/decode "
-             "| files/s | peak MiB decode / ingest / merge | above imports MiB decode / ingest / merge |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| sphere assembly s | with assembly | files/s | peak MiB decode / ingest / make-probes "
+             "| above imports MiB decode / ingest / make-probes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, q = r["peak_mib"], r["work_mib"]
         lines.append(f"| {r['brackets']} | {r['files']} | {r['megapixels']:.1f} | {r['compression']} | {r['decode_s']:.2f} "
                      f"| {r['ingest_s']:.2f} | {r['merge_s']:.2f} | {r['ratio']:.2f}x "
+                     f"| {r['assembly_s']:.2f} | {r['ratio_with_assembly']:.2f}x "
                      f"| {r['files_per_s']:.1f} | {p['decode']} / {p['ingest']} / {p['merge']} "
                      f"| {q['decode']} / {q['ingest']} / {q['merge']} |")
     return "\n".join(lines)

@@ -61,8 +61,13 @@ def _unchanged(old: dict | None, stat: os.stat_result) -> bool:
 
 def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
                session_gap_min: float = 30.0, bracket_gap_s: float = 15.0,
-               detect_roles: bool = True, progress: bool = False) -> ing.IngestSummary:
-    """Ingest the tree under ``root`` into ``work/captures.parquet``; returns counts."""
+               detect_roles: bool = True, progress: bool = False, workers: int | None = None) -> ing.IngestSummary:
+    """Ingest the tree under ``root`` into ``work/captures.parquet``; returns counts.
+
+    New or changed files are read by ``workers`` threads (default: the CPU count, at most 4): the
+    SHA-256 and a LibRaw decode, the costly parts, release the GIL; each holds one file at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from f2l.io.tables import rows_to_table, write_table_atomic
 
     root, work = Path(root), Path(work)
@@ -72,28 +77,33 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     table_path = work / TABLE_NAME
     previous = _previous(table_path)
     summary = ing.IngestSummary(root=str(root), table=str(table_path))
-    files = ing.scan(root)
-    if progress:
-        from tqdm import tqdm
-
-        files = tqdm(files, desc="ingest", unit="file")
-    rows = []
-    for path in files:
-        rel = path.relative_to(root).as_posix()
-        stat = path.stat()
+    todo = []  # (path, relative path, stat, previous row or None when it must be read)
+    for path in ing.scan(root):
+        rel, stat = path.relative_to(root).as_posix(), path.stat()
         old = previous.get(rel)
-        if _unchanged(old, stat):
+        todo.append((path, rel, stat, old if _unchanged(old, stat) else None))
+
+    def one(item) -> dict:
+        path, rel, stat, old = item
+        if old is not None:
             row = dict(old)
-            cached = (old["role"] if old["role_source"] == "detected"
-                      and old["role"] in CONTENT_ROLES else None)
-            summary.reused += 1
+            row["_content_role"] = old["role"] if old["role_source"] == "detected" and old["role"] in CONTENT_ROLES else None
         else:
             row = _read_row(path, rel, ing.kind_of(path), stat)
-            cached = None
-            summary.read += 1
+            row["_content_role"] = None
         row["_file_error"] = row["sha256"] == ""  # reading the file failed: keep its message
-        row["_content_role"] = cached
-        rows.append(row)
+        return row
+
+    n_workers = max(1, min(4, os.cpu_count() or 1) if workers is None else int(workers))
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        results = pool.map(one, todo)  # in scan order
+        if progress:
+            from tqdm import tqdm
+
+            results = tqdm(results, total=len(todo), desc="ingest", unit="file")
+        rows = list(results)
+    summary.reused = sum(item[3] is not None for item in todo)
+    summary.read = len(todo) - summary.reused
     _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary)
     for r in rows:
         r.pop("_file_error")

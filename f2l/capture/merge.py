@@ -18,8 +18,8 @@ Saturated everywhere. Quads clipped in every frame take the shortest frame's val
 samples at exactly ``1 / e_min`` (the most it records); ``saturated`` flags them plus a 1-pixel
 border (the demosaic footprint): flagged values are lower bounds, never averages.
 
-Alignment and motion. Frames are decoded and merged one at a time into running sums (float32; float64
-only for scalars and the alignment window), from the middle exposure (the reference) outwards, each
+Alignment and motion. Frames are merged one at a time into running sums (float32; float64 only for
+scalars and the alignment window) while the next two are decoded and normalised in threads, from the middle exposure (the reference) outwards, each
 aligned to its already aligned neighbour in exposure (``_estimate_shift``); shifts of at least
 ``min_shift_px`` (full-resolution pixels) are corrected by bilinear resampling of each CFA plane, the
 uncovered border getting no weight. Then each frame is compared with the merge where both are well
@@ -39,6 +39,7 @@ import timeit
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from scipy import fft as sfft
@@ -96,9 +97,9 @@ class FrameInfo:
 class MergedHDR:
     """A merged bracket: ``rgb`` (H, W, 3) and ``mosaic`` (H, W) float32 in the module's units (camera
     RGB, or linear Rec.709 when ``colour_space == "rec709"``), H and W the frame size rounded down to
-    even; ``saturated`` pixels hold lower bounds. ``status`` is "ok" or "moved"."""
+    even; ``saturated`` pixels hold lower bounds. ``status`` is "ok" or "moved". ``rgb`` is the
+    bilinear demosaic of ``mosaic``, computed on first use (by whichever thread writes the view)."""
 
-    rgb: np.ndarray
     mosaic: np.ndarray
     saturated: np.ndarray
     saturated_fraction: float
@@ -110,6 +111,13 @@ class MergedHDR:
     status: str = "ok"
     warnings: list[str] = field(default_factory=list)
     scale: float = 1.0
+    rgb_cache: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def rgb(self) -> np.ndarray:
+        if self.rgb_cache is None:
+            self.rgb_cache = demosaic_bilinear(self.mosaic, self.cfa_pattern)
+        return self.rgb_cache
 
 
 def _resolve(item) -> tuple[RawMeta, Callable[[], tuple[RawMeta, np.ndarray]]]:
@@ -164,18 +172,28 @@ def _processing_order(metas: list[RawMeta]) -> tuple[list[int], dict[int, int | 
     return [ranked[k] for k in sorted(range(len(ranked)), key=lambda k: (abs(k - ref), k > ref))], neighbour
 
 
-def _decoded(loaders, order, prefetch: bool):
-    """Yield (index, (meta, mosaic)) in ``order``; with ``prefetch`` the next file is decoded in a
-    worker thread, overlapping the current frame's arithmetic: at most two mosaics in memory."""
-    if not prefetch:
+def _load_signal(loader: Callable, saturation_fraction: float):
+    """Decode one frame and compute its :func:`_signal` (runs in a prefetch thread); the signal
+    is ``None`` for a layout that :func:`_check_layout` will refuse."""
+    m, mosaic = loader()
+    if m.cfa_pattern not in BAYER_PATTERNS or min(m.height, m.width) < 4 or not m.white_level > max(m.black_levels):
+        return m, None
+    return m, _signal(mosaic, m, m.height // 2, m.width // 2, saturation_fraction)
+
+
+def _decoded(loaders, order, prefetch: int):
+    """Yield (index, loaders[index]()) in ``order``; with ``prefetch`` = n > 0 the next n are
+    computed by n worker threads (LibRaw and numpy's large-array loops release the GIL) while
+    the current frame's arithmetic runs: at most n + 1 frames in memory."""
+    if prefetch <= 0:
         yield from ((k, loaders[k]()) for k in order)
         return
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(loaders[order[0]])
+    with ThreadPoolExecutor(max_workers=prefetch) as pool:
+        pending = [pool.submit(loaders[k]) for k in order[:prefetch]]
         for j, k in enumerate(order):
-            loaded = pending.result()
-            if j + 1 < len(order):
-                pending = pool.submit(loaders[order[j + 1]])
+            loaded = pending.pop(0).result()
+            if j + prefetch < len(order):
+                pending.append(pool.submit(loaders[order[j + prefetch]]))
             yield k, loaded
 
 
@@ -351,11 +369,12 @@ def merge_bracket(
     motion_tolerance: float = 0.05,
     moved_fraction: float = 0.02,
     to_rec709: bool = False,
-    prefetch: bool = True,
+    prefetch: int | bool = 2,
 ) -> MergedHDR:
     """Merge RAW files (paths) or :class:`RawFrame` objects of one bracket (conventions above).
 
-    ``dark_dn`` defaults to 4 read-noise sigmas. Raises :class:`BracketError` for fewer than two
+    ``dark_dn`` defaults to 4 read-noise sigmas. ``prefetch``: files decoded ahead in threads
+    (``True`` = 1, ``False`` = 0: decode in turn). Raises :class:`BracketError` for fewer than two
     frames, frames from different cameras/sizes/CFA patterns or without exposure metadata, and
     :class:`~f2l.capture.raw_meta.RawError` for unreadable files; every message names the files.
     """
@@ -374,7 +393,8 @@ def merge_bracket(
     shift_q: dict[int, tuple[float, float]] = {}  # shift relative to the reference, quads
     infos = [FrameInfo(m.path, m.exposure_s, m.f_number, m.iso, m.exposure_factor, m.ev100) for m in metas]
     warnings: list[str] = []
-    for i, (m, mosaic) in _decoded([ld for _, ld in resolved], order, prefetch):
+    loaders = [partial(_load_signal, ld, saturation_fraction) for _, ld in resolved]
+    for i, (m, signal) in _decoded(loaders, order, int(prefetch)):
         _check_layout(m, None if i == ref_i else metas[ref_i])
         metas[i], info = m, infos[i]
         if i == ref_i:
@@ -382,8 +402,8 @@ def merge_bracket(
             num, den = np.zeros((2 * h, 2 * w), np.float32), np.zeros((h, w), np.float32)
             wmax, dominant, sat_all = np.zeros((h, w), np.float32), np.full((h, w), -1, np.int16), np.ones((h, w), bool)
         e, span = m.exposure_factor, m.white_level - float(np.mean(m.black_levels))
-        sig, clipped, qdn = _signal(mosaic, m, h, w, saturation_fraction)
-        del mosaic
+        sig, clipped, qdn = signal
+        del signal
         y = qdn * np.float32(1.0 / (span * e))
         y[clipped] = np.inf
         inside, unshifted[i], shift_q[i] = None, y, (0.0, 0.0)
@@ -433,7 +453,7 @@ def merge_bracket(
     merged_var = np.float32(0.25 / e_ref**2) / np.where(zero, np.float32(1), den)  # variance of the quad mean
     _motion(metas, infos, quads, quad_mean(num), merged_var, zero, dark, noise, motion_tolerance, moved_fraction)
     quads.clear(), unshifted.clear()  # before the demosaic: peak memory is then the result plus a mosaic
-    rgb, cfa = demosaic_bilinear(num, metas[ref_i].cfa_pattern), metas[ref_i].cfa_pattern
+    rgb, cfa = None, metas[ref_i].cfa_pattern  # demosaiced on first use of MergedHDR.rgb
     saturated = _dilate(_up(sat_all & zero))
     counts = np.bincount(dominant.ravel() + 1, minlength=len(metas) + 1)[1:]
     for i, info in enumerate(infos):
@@ -449,9 +469,9 @@ def merge_bracket(
     if to_rec709 and metas[ref_i].xyz_to_camera is None:
         warnings.append(f"{metas[ref_i].path}: no colour matrix; result left in camera RGB")
     elif to_rec709:
-        rgb, space = camera_to_rec709(rgb, metas[ref_i].xyz_to_camera), "rec709"
+        rgb, space = camera_to_rec709(demosaic_bilinear(num, cfa), metas[ref_i].xyz_to_camera), "rec709"
     return MergedHDR(
-        rgb=rgb, mosaic=num, saturated=saturated, saturated_fraction=float(saturated.mean()), cfa_pattern=cfa,
+        rgb_cache=rgb, mosaic=num, saturated=saturated, saturated_fraction=float(saturated.mean()), cfa_pattern=cfa,
         colour_space=space, min_exposure_factor=factors[short_i], reference=metas[ref_i].path, frames=infos,
         status="moved" if any(f.moved for f in infos) else "ok", warnings=warnings,
     )  # fmt: skip

@@ -27,6 +27,7 @@ up-looking fisheye, is 0 in the probe and never invented). ``WORK/probes.parquet
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 import math
 import os
 import time
@@ -128,18 +129,30 @@ def downsample_view(rgb: np.ndarray, saturated: np.ndarray, max_side: int):
 def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
                view_max_side: int) -> tuple[dict, object | None]:
     """Merge one bracket → (row, placed view or None)."""
-    from f2l.capture.cameras import Vignetting, correct_vignetting
+    return _finish_one(work, bid, frames, view_max_side, *_merge_frames(root, bid, frames))
+
+
+def _merge_frames(root: Path, bid: str, frames: list[dict]):
+    """The bracket merge itself: (merged or None, error row or None, start time)."""
     from f2l.capture.merge import merge_bracket
+
+    t0 = time.perf_counter()
+    try:
+        return merge_bracket([root / f["path"] for f in frames]), None, t0
+    except Exception as exc:  # BracketError / RawError name the files
+        return None, _row("view", bid, frames[0]["session"], "error", str(exc), frames=len(frames)), t0
+
+
+def _finish_one(work: Path, bid: str, frames: list[dict], view_max_side: int, merged, error_row,
+                t0: float) -> tuple[dict, object | None]:
+    """Vignetting, downsampling and the view's files for a merged bracket → (row, placed view or None)."""
+    from f2l.capture.cameras import Vignetting, correct_vignetting
     from f2l.capture.sphere import View
     from f2l.io.exr import write_exr
 
-    t0 = time.perf_counter()
+    if merged is None:
+        return error_row, None
     session = frames[0]["session"]
-    paths = [root / f["path"] for f in frames]
-    try:
-        merged = merge_bracket(paths)
-    except Exception as exc:  # BracketError / RawError name the files
-        return _row("view", bid, session, "error", str(exc), frames=len(frames)), None
     info = json.loads(frames[0]["view_json"] or "{}")
     rgb = merged.rgb
     if info.get("vignetting"):
@@ -157,7 +170,7 @@ def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
     try:
         camera = camera_for(info, rgb.shape[1], rgb.shape[0])
     except ValueError as exc:
-        row.update(status="unplaced", message=f"{paths[0]}: {exc}")
+        row.update(status="unplaced", message=f"{frames[0]['path']}: {exc}")
         return row, None
     return row, View(image=rgb, camera=camera, saturated=saturated, name=bid)
 
@@ -241,24 +254,54 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
     for r in captures:
         if r["bracket_id"] and r["status"] == "ok":
             brackets.setdefault(r["bracket_id"], []).append(r)
-    by_session: dict[str, list] = {}
-    items = sorted(brackets.items())
+    # Session by session (its views are blended as soon as its last bracket is merged, then
+    # dropped: memory holds one session's views, never the dataset's). One bracket is merged at
+    # a time; the previous one's downsampling and files are written by a thread meanwhile.
+    items = sorted(brackets.items(), key=lambda item: (item[1][0]["session"], item[0]))
+    bar = None
     if progress:
         from tqdm import tqdm
 
-        items = tqdm(items, desc="merge", unit="bracket")
-    for bid, frames in items:
-        frames.sort(key=lambda f: f["path"])
-        row, view = _merge_one(root, work, bid, frames, view_max_side)
+        bar = tqdm(total=len(items), desc="merge", unit="bracket")
+    views: list = []
+
+    def collect(finished) -> None:
+        row, view = finished.result()
         summary.rows.append(row)
         summary.brackets += 1
         if view is not None:
             summary.views += 1
-            by_session.setdefault(frames[0]["session"], []).append(view)
-    for session, views in sorted(by_session.items()):
-        row = assemble_session(session, views, work, grid_height, grid_width)
-        summary.rows.append(row)
-        summary.probes += row["status"] == "ok"
+            views.append(view)
+        if bar is not None:
+            bar.update(1)
+
+    def assemble(session: str) -> None:
+        if views:
+            row = assemble_session(session, views, work, grid_height, grid_width)
+            summary.rows.append(row)
+            summary.probes += row["status"] == "ok"
+        views.clear()
+
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        pending, session = None, None
+        for bid, frames in items:
+            frames.sort(key=lambda f: f["path"])
+            if frames[0]["session"] != session:
+                if pending is not None:
+                    collect(pending)
+                    pending = None
+                assemble(session)
+                session = frames[0]["session"]
+            merged = _merge_frames(root, bid, frames)
+            if pending is not None:
+                collect(pending)
+            pending = writer.submit(_finish_one, work, bid, frames, view_max_side, *merged)
+            del merged
+        if pending is not None:
+            collect(pending)
+        assemble(session)
+    if bar is not None:
+        bar.close()
     for r in captures:  # already-merged probes
         if r["role"] == "probe" and r["kind"] == "hdr":
             summary.rows.append(_row("given", r["path"], r["session"], r["status"], r["message"],
