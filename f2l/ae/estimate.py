@@ -188,13 +188,13 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
     torch.set_num_threads(max(1, cfg.threads))
     prob = LatentSkyProblem(obs, model, cfg)
     precompute_s = time.perf_counter() - t_start
-    torch.set_num_threads(1)  # small batched tensors: one intra-op thread (f2l.estimate.estimator)
 
-    t_search = time.perf_counter()
+    t_search = time.perf_counter()  # one (K A 3 x 256) . (256 x N) product: all threads
     rho_skin = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), dtype=np.float64)
     candidates = prob.search(cfg.ground_albedo_init)
     starts = pick_starts(candidates, max(1, cfg.sun_starts))
     search_s = time.perf_counter() - t_search
+    torch.set_num_threads(1)  # small batched tensors: one intra-op thread (f2l.estimate.estimator)
 
     z0 = torch.tensor(np.stack([c["code"] for c in starts]), dtype=torch.float32)
     phi0 = torch.tensor([c["azimuth"] for c in starts], dtype=torch.float32)
