@@ -393,3 +393,25 @@ def test_cli_fit_probe_all_bad_and_unknown_model(tmp_path, runner):
     assert res.exit_code != 0 and "no probe could be fitted" in res.stderr and "bad.exr" in res.stderr
     res = runner.invoke(app, ["fit-probe", str(tmp_path), "--model", "no-such-model", "--json"])
     assert res.exit_code != 0 and "no-such-model" in res.stderr
+
+
+def test_fit_report_breaks_the_sky_errors_down_by_kind():
+    from f2l.estimate.prior_build import ProbeRecord, kind_table
+
+    def rec(kind, full, sky, ff=None):
+        extra = {"metrics": {"Full-dω MAE (l)": full, "Sky-dω MAE (l)": sky}}
+        if ff is not None:
+            extra["variants"] = {"m_ff": {"metrics": {"Full-dω MAE (l)": ff, "Sky-dω MAE (l)": ff / 2}}}
+        return ProbeRecord(f"{kind}-{full}.exr", "ok", kind=kind, extra=extra)
+
+    records = [rec("clear", 0.1, 0.05, ff=0.2), rec("clear", 0.3, 0.15, ff=0.4), rec("overcast", 0.02, 0.01, ff=0.06),
+               ProbeRecord("bad.exr", "error", "unreadable", kind="clear"), ProbeRecord("none.exr", "ok", extra={})]
+    table = kind_table(records, "m")
+    got = {(r["fit"], r["kind"]): (r["n"], r["Full-dω MAE (l)"], r["Sky-dω MAE (l)"]) for r in table["rows"]}
+    assert got == {("m", "clear"): (2, pytest.approx(0.2), pytest.approx(0.1)), ("m", "overcast"): (1, 0.02, 0.01),
+                   ("m_ff", "clear"): (2, pytest.approx(0.3), pytest.approx(0.15)),
+                   ("m_ff", "overcast"): (1, 0.06, 0.03)}
+    assert table["lines"][0] == ("| fit | clear (2): Full-dω (Sky-dω) MAE (l) | "
+                                 "overcast (1): Full-dω (Sky-dω) MAE (l) |")
+    assert table["lines"][2] == "| m | 0.2 (0.1) | 0.02 (0.01) |"
+    assert kind_table([ProbeRecord("x.exr", "ok", extra={"metrics": {}})], "m") == {"rows": [], "lines": []}

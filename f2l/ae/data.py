@@ -41,22 +41,9 @@ def list_sky_files(folder: str | Path) -> list[Path]:
 
 def read_sky_file(path: str | Path) -> np.ndarray:
     """(H, W, 3) float32 linear RGB of an EXR or Radiance HDR; ValueError naming the file."""
-    path = Path(path)
-    if path.suffix.lower() == ".hdr":
-        import cv2
+    from f2l.io.exr import read_probe_image
 
-        if not path.is_file():
-            raise ValueError(f"{path}: file not found")
-        img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
-        if img is None or img.ndim != 3:
-            raise ValueError(f"{path}: unreadable Radiance HDR")
-        return np.ascontiguousarray(img[:, :, ::-1], dtype=np.float32)
-    from f2l.io.exr import ExrError, read_exr
-
-    try:
-        return read_exr(path)
-    except ExrError as exc:
-        raise ValueError(str(exc)) from exc
+    return read_probe_image(path)
 
 
 def prepare_sky(path: str | Path, azimuth: float | None = None) -> tuple[np.ndarray, float, float]:

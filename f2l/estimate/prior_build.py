@@ -195,6 +195,10 @@ def write_fit_report(records: list[ProbeRecord], model, out_dir: str | Path | No
     summary["metrics"] = table["rows"]
     if table["rows"]:
         lines += ["", *table["lines"]]
+    by_kind = kind_table(records, model.name)
+    summary["by_kind"] = by_kind["rows"]
+    if by_kind["rows"]:
+        lines += ["", *by_kind["lines"]]
     summary["markdown"] = "\n".join(lines)
     if out_dir is not None:
         from f2l.metrics.lighting import PROBE_METRIC_NAMES
@@ -217,6 +221,37 @@ def write_fit_report(records: list[ProbeRecord], model, out_dir: str | Path | No
         write_text_atomic(out / "fit_probe.csv", buf.getvalue())
         summary["csv"] = str(out / "fit_probe.csv")
     return summary
+
+
+def kind_table(records: list[ProbeRecord], model_name: str) -> dict:
+    """Full-dω and Sky-dω MAE (l) means per kind of sky (the probes' side files: clear, partly,
+    overcast, ...) for the model and each fit variant; empty when no probe has a kind.
+    {"rows": [{"fit", "kind", "n", "Full-dω MAE (l)", "Sky-dω MAE (l)"}], "lines": Markdown}."""
+    names = ("Full-dω MAE (l)", "Sky-dω MAE (l)")
+    ok = [r for r in records if r.status == "ok" and r.kind and r.extra.get("metrics")]
+    kinds = sorted({r.kind for r in ok})
+    fits = [model_name] + sorted({v for r in ok for v in r.extra.get("variants", {})})
+    rows = []
+    for fit in fits:
+        for kind in kinds:
+            ms = [r.extra["metrics"] if fit == model_name else r.extra.get("variants", {}).get(fit, {}).get("metrics")
+                  for r in ok if r.kind == kind]
+            ms = [m for m in ms if m]
+            if ms:
+                rows.append({"fit": fit, "kind": kind, "n": len(ms),
+                             **{n: float(np.mean([m[n] for m in ms])) for n in names}})
+    if not rows:
+        return {"rows": [], "lines": []}
+    counts = {k: max(r["n"] for r in rows if r["kind"] == k) for k in kinds}
+    lines = ["| fit | " + " | ".join(f"{k} ({counts[k]}): Full-dω (Sky-dω) MAE (l)" for k in kinds) + " |",
+             "|---|" + "---|" * len(kinds)]
+    for fit in fits:
+        cells = []
+        for k in kinds:
+            row = next((r for r in rows if r["fit"] == fit and r["kind"] == k), None)
+            cells.append("-" if row is None else f"{row[names[0]]:.4g} ({row[names[1]]:.4g})")
+        lines.append(f"| {fit} | " + " | ".join(cells) + " |")
+    return {"rows": rows, "lines": lines}
 
 
 def metrics_table(records: list[ProbeRecord], model_name: str) -> dict:
