@@ -50,6 +50,34 @@ def face_under_corpus_sky():
     return face, info
 
 
+def test_clear_sky_probe_puts_its_sun_where_asked():
+    from f2l.ae.corpus import clear_sky_probe
+    from f2l.metrics.lighting import sun_direction
+
+    for elevation_deg, azimuth_deg in ((5.0, -120.0), (40.0, 30.0), (85.0, 170.0)):
+        probe = clear_sky_probe(GRID, math.radians(elevation_deg), math.radians(azimuth_deg), turbidity=4.0)
+        assert probe.dtype == np.float32 and np.all(np.isfinite(probe)) and probe.min() >= 0
+        el, az = angles_from_direction(sun_direction(probe, GRID))
+        assert abs(math.degrees(el) - elevation_deg) < 1.5
+        assert _azimuth_error_deg(az, math.radians(azimuth_deg)) < 1.5 / max(math.cos(el), 0.1)
+
+
+def test_search_ladder_decodes_to_suns_at_every_elevation(model):
+    """The search's ladder codes (encoded cloudless skies, sun every 3 deg) decode to suns at their
+    elevations: the decoder, not only the encoder, covers the whole range."""
+    from f2l_builtin_models.ae import LADDER_ELEVATIONS_DEG, LADDER_TURBIDITIES
+
+    codes = model.ladder_codes()
+    assert codes.shape == (len(LADDER_ELEVATIONS_DEG) * len(LADDER_TURBIDITIES), 63)
+    assert model.search_codes().shape[0] == codes.shape[0] + 24  # 8 GMM components x 3 points first
+    for i, code in enumerate(codes):
+        params = np.concatenate([[0.0], code, [0.0]])
+        el, az = angles_from_direction(model.sun_direction(params))
+        want = LADDER_ELEVATIONS_DEG[i // len(LADDER_TURBIDITIES)]
+        assert abs(math.degrees(el) - want) < (2.0 if want < 3 else 1.0), (want, math.degrees(el))
+        assert _azimuth_error_deg(az, 0.0) < 1.0 / max(math.cos(el), 0.05)
+
+
 def test_estimate_recovers_the_sun_azimuth_of_a_corpus_sky(model, face_under_corpus_sky):
     face, info = face_under_corpus_sky
     obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, GRID)

@@ -59,9 +59,49 @@ def _normalised_preetham(grid: LatLongGrid, elevation: float, azimuth: float, tu
     return sky.reshape(grid.sky_rows, grid.width, 3)
 
 
+def _horizontal_weights(grid: LatLongGrid) -> np.ndarray:
+    """(sky_rows, W) max(cos zenith, 0) dω: horizontal irradiance = Σ weights · radiance."""
+    rows = grid.sky_rows
+    return np.maximum(np.array(grid.directions[:rows])[..., 1], 0.0) * np.array(grid.solid_angles[:rows])
+
+
+def _sun(elevation: float, azimuth: float, turbidity: float, ratio_jitter: float):
+    """(sun direction, RGB irradiance at normal incidence, its luminance, sky-to-sun ratio r)."""
+    from f2l.synth.skies import sky_to_sun_ratio, sun_rgb_irradiance
+
+    sun_rgb = sun_rgb_irradiance(elevation, turbidity)
+    ratio = sky_to_sun_ratio(turbidity) * (1.0 + 2.0 * math.exp(-math.degrees(elevation) / 8.0)) * ratio_jitter
+    return direction_from_angles(elevation, azimuth), sun_rgb, float(sun_rgb @ REC709_LUMA), ratio
+
+
+def _clear_and_sun(grid: LatLongGrid, elevation: float, azimuth: float, turbidity: float, kappa: float,
+                   ratio_jitter: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The clear corpus sky's two parts on the sky rows, (rows, W, 3) float64 each: the Preetham sky
+    at r times the sun's luminance in horizontal irradiance, and the vMF sun lobe (module docstring)."""
+    from f2l.synth.skies import sun_lobe_energy
+
+    sun_dir, sun_rgb, sun_lum, ratio = _sun(elevation, azimuth, turbidity, ratio_jitter)
+    clear = _normalised_preetham(grid, elevation, azimuth, turbidity)
+    clear *= ratio * sun_lum / float(np.einsum("hwc,c,hw->", clear, REC709_LUMA, _horizontal_weights(grid)))
+    return clear, sun_lobe_energy(grid, sun_dir, kappa)[: grid.sky_rows, :, None] * sun_rgb
+
+
+def clear_sky_probe(grid: LatLongGrid, elevation_rad: float, azimuth_rad: float = 0.0, turbidity: float = 3.0,
+                    kappa: float = 4096.0, ground_albedo: float = 0.2) -> np.ndarray:
+    """A cloudless corpus sky (ratio jitter 1) as a full probe (H, W, 3) float32 with its ground:
+    the autoencoder's face search encodes a ladder of these (``AE.search_codes``)."""
+    from f2l.synth.skies import horizontal_irradiance
+
+    clear, lobe = _clear_and_sun(grid, elevation_rad, azimuth_rad, turbidity, kappa)
+    probe = np.zeros((grid.height, grid.width, 3), dtype=np.float64)
+    probe[: grid.sky_rows] = clear + lobe
+    probe[grid.sky_rows:] = ground_albedo / math.pi * horizontal_irradiance(grid, probe)
+    return probe.astype(np.float32)
+
+
 def random_ae_sky(grid: LatLongGrid, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """One random sky (module docstring): (probe (H, W, 3) float32 with ground, info dict)."""
-    from f2l.synth.skies import horizontal_irradiance, sky_to_sun_ratio, sun_lobe_energy, sun_rgb_irradiance
+    from f2l.synth.skies import horizontal_irradiance
 
     u = rng.uniform()
     cumulative = np.cumsum([p for _, p in KIND_PROBABILITIES])
@@ -77,11 +117,7 @@ def random_ae_sky(grid: LatLongGrid, rng: np.random.Generator) -> tuple[np.ndarr
     rows = grid.sky_rows
     dirs = np.array(grid.directions[:rows])
     sa = np.array(grid.solid_angles[:rows])
-    weights_h = np.maximum(dirs[..., 1], 0.0) * sa
-    sun_dir = direction_from_angles(elevation, azimuth)
-    sun_rgb = sun_rgb_irradiance(elevation, turbidity)
-    sun_lum = float(sun_rgb @ REC709_LUMA)
-    ratio = sky_to_sun_ratio(turbidity) * (1.0 + 2.0 * math.exp(-math.degrees(elevation) / 8.0)) * ratio_jitter
+    sun_dir, sun_rgb, sun_lum, ratio = _sun(elevation, azimuth, turbidity, ratio_jitter)
     info = dict(kind=kind, sun_direction=[float(v) for v in sun_dir], sun_elevation_deg=math.degrees(elevation),
                 sun_azimuth_deg=math.degrees(azimuth), turbidity=turbidity, sun_kappa=kappa,
                 ground_albedo=ground_albedo, sun_transmittance=1.0)
@@ -90,13 +126,11 @@ def random_ae_sky(grid: LatLongGrid, rng: np.random.Generator) -> tuple[np.ndarr
     if kind == "overcast":
         sky, extra = clouds.overcast_radiance(dirs, sa, sun_dir, sub)
         target = ratio * sun_lum + float(sub.uniform(0.2, 0.6)) * sun_lum  # horizontal irradiance
-        sky *= target / float(np.einsum("hwc,c,hw->", sky, REC709_LUMA, weights_h))
+        sky *= target / float(np.einsum("hwc,c,hw->", sky, REC709_LUMA, _horizontal_weights(grid)))
         info.update(extra, sun_direction=None, sun_transmittance=0.0)
         probe[:rows] = sky
     else:
-        clear = _normalised_preetham(grid, elevation, azimuth, turbidity)
-        clear *= ratio * sun_lum / float(np.einsum("hwc,c,hw->", clear, REC709_LUMA, weights_h))
-        lobe = sun_lobe_energy(grid, sun_dir, kappa)[:rows, :, None] * sun_rgb
+        clear, lobe = _clear_and_sun(grid, elevation, azimuth, turbidity, kappa, ratio_jitter)
         if kind == "partly":
             cover = float(sub.uniform(0.1, 0.9))
             sky, trans, extra = clouds.partly_cloudy(clear, dirs, sa, sun_dir, sun_rgb, sub, cover)

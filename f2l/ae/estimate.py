@@ -46,6 +46,8 @@ from f2l.transport import Transport
 
 BLOCK = (4, 4)
 SEARCH_REFINE = 32
+SEARCH_PIXELS = 512
+_SEARCH_CACHE: dict[tuple, tuple[np.ndarray, torch.Tensor]] = {}
 MIN_START_SEPARATION_RAD = math.radians(45.0)
 
 
@@ -118,16 +120,14 @@ class LatentSkyProblem:
 
     # -- search -----------------------------------------------------------------------------------------
     def candidate_skies(self) -> tuple[np.ndarray, torch.Tensor]:
-        """(codes (K, 63), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached
-        on the model (they do not depend on the face)."""
-        model = self.model
-        cache = getattr(model, "_latent_search_cache", None)
-        if cache is None:
-            codes = model.search_codes()
+        """(codes (K, 63), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached per
+        process, weights file and grid (they do not depend on the face)."""
+        key = (getattr(self.model, "weights_key", id(self.model)), self.grid.height, self.grid.width)
+        if key not in _SEARCH_CACHE:
+            codes = self.model.search_codes()
             with torch.no_grad():
-                cache = (codes, self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None))
-            model._latent_search_cache = cache
-        return cache
+                _SEARCH_CACHE[key] = (codes, self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None))
+        return _SEARCH_CACHE[key]
 
     @staticmethod
     def _psi_score(tl: torch.Tensor, y: torch.Tensor, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -147,10 +147,11 @@ class LatentSkyProblem:
         # azimuth index j = 2 a + h: a shift of (a BLOCK[1] + h half) columns
         rolled = torch.stack([torch.roll(shifts, a, dims=-1) for a in range(self.nbc)], 1)  # (K, A/2, 2, 3, nbr, nbc)
         A = 2 * self.nbc
-        tl = (rolled.reshape(K * A * 3, -1) @ self.t_blk.T).reshape(K, A, 3, -1)
+        sub = slice(None, None, max(1, self.target.shape[1] // SEARCH_PIXELS))  # coarse ranking: a pixel subset
+        tl = (rolled.reshape(K * A * 3, -1) @ self.t_blk[sub].T).reshape(K, A, 3, -1)
         rho_g = torch.full((K,), ground_albedo)
-        tl = tl + self.ground(sky, rho_g)[:, None]
-        psi, score = self._psi_score(tl, self.target, self.target_scale)  # (K, A, 3), (K, A)
+        tl = tl + self.ground(sky, rho_g)[:, None, :, sub]
+        psi, score = self._psi_score(tl, self.target[:, sub], self.target_scale)  # (K, A, 3), (K, A)
         best = torch.argsort(score.reshape(-1))[:refine]
         k_idx, j_idx = best // A, best % A
         rotated = torch.stack([torch.roll(sky[k], int(j) * half, dims=-1) for k, j in zip(k_idx.tolist(), j_idx.tolist())])

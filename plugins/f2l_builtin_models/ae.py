@@ -38,6 +38,9 @@ DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "ae_sky.npz"
 WEIGHTS_ENV = "F2L_AE_WEIGHTS"
 START_AZIMUTHS_RAD = (-0.75 * math.pi, -0.25 * math.pi, 0.25 * math.pi, 0.75 * math.pi)
 MAX_PRIOR_COMPONENTS = 8
+LADDER_ELEVATIONS_DEG = tuple(1.5 + 3.0 * i for i in range(30))
+LADDER_TURBIDITIES = (2.5, 6.0)
+_LADDER_CACHE: dict[tuple, np.ndarray] = {}
 _LOADED: dict = {}
 
 
@@ -88,6 +91,7 @@ class AE(LightingModel):
         self.network, self.decoder, self.prior = net["ae"], net["decoder"], net["prior"]
         res = grid_resampler(grid)
         self._resample = None if res is None else tuple(torch.as_tensor(m, dtype=torch.float32) for m in res)
+        self._ladder: np.ndarray | None = None
 
     # -- layout ------------------------------------------------------------------------------------
     @property
@@ -126,19 +130,42 @@ class AE(LightingModel):
         return np.array(self.prior.means[order])
 
     def search_codes(self, k: int = MAX_PRIOR_COMPONENTS, spread: float = 1.5) -> np.ndarray:
-        """(3K, 63) start codes of the face estimator's search: each of the K heaviest GMM
+        """(3K + L, 63) start codes of the face estimator's search: each of the K heaviest GMM
         components' mean and the two points ``spread`` standard deviations along its first
         principal axis (on the shipped prior, the components are bands of sun elevation ~15 deg
-        apart and the axis moves the sun within a band)."""
-        if self.prior is None:
-            return np.zeros((1, 63))
+        apart and the axis moves the sun within a band), then the :meth:`ladder_codes`."""
         out = []
-        for j in np.argsort(-self.prior.weights)[:k]:
-            w, v = np.linalg.eigh(self.prior.covariances[j])
-            axis = math.sqrt(max(float(w[-1]), 0.0)) * v[:, -1]
-            mean = self.prior.means[j]
-            out += [mean, mean - spread * axis, mean + spread * axis]
-        return np.asarray(out)
+        if self.prior is not None:
+            for j in np.argsort(-self.prior.weights)[:k]:
+                w, v = np.linalg.eigh(self.prior.covariances[j])
+                axis = math.sqrt(max(float(w[-1]), 0.0)) * v[:, -1]
+                mean = self.prior.means[j]
+                out += [mean, mean - spread * axis, mean + spread * axis]
+        return np.concatenate([np.asarray(out).reshape(-1, 63), self.ladder_codes()])
+
+    @property
+    def weights_key(self) -> tuple:
+        """(resolved path, size, mtime) of the weights file: what per-process caches of derived
+        data (search codes, their decoded skies) are keyed by."""
+        stat = self.weights_file.stat()
+        return str(self.weights_file.resolve()), stat.st_size, stat.st_mtime_ns
+
+    def ladder_codes(self) -> np.ndarray:
+        """(L, 63) encoder codes of cloudless corpus skies with the sun every 3 deg of elevation
+        (1.5 ... 88.5 deg) at turbidities 2.5 and 6, cached. The latent space moves a sun's
+        elevation only in jumps (L-BFGS from a GMM band keeps it within ~10-30 deg of where it
+        started), so the search offers every elevation; generated, not stored: ~1 s once."""
+        if self._ladder is None:
+            key = self.weights_key
+            if key not in _LADDER_CACHE:  # per weights file and process: models are made per grid / record
+                from f2l.ae.corpus import clear_sky_probe
+
+                grid = LatLongGrid(64, 128)  # sky rows at the network's 32 x 128
+                probes = [clear_sky_probe(grid, math.radians(e), 0.0, t) for e in LADDER_ELEVATIONS_DEG
+                          for t in LADDER_TURBIDITIES]
+                _LADDER_CACHE[key] = np.stack([self.encode_probe(p)[1:64] for p in probes])
+            self._ladder = _LADDER_CACHE[key]
+        return self._ladder
 
     def initial_points(self) -> np.ndarray:
         """(K x 4, 65): each GMM centroid at 4 azimuths (+-45, +-135 deg), unit exposure."""
