@@ -188,3 +188,25 @@ def test_static_bracket_gets_no_shift_where_the_window_is_a_smooth_aureole(tmp_p
     lum = result.rgb.sum(axis=2)
     rows, cols = np.nonzero(lum >= 0.5 * lum.max())
     assert abs(rows.mean() - 0.25 * 1224) < 1.0 and abs(cols.mean() - 0.7 * 1632) < 1.0
+
+
+def test_bracket_started_in_a_shared_pool_merges_like_paths_and_keeps_its_errors(bracket, merged, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from f2l.capture.merge import BracketStart
+
+    fired = []
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        started = BracketStart(bracket, pool, prefetch=2)
+        assert started.submitted == 2  # decoding began before the merge
+        started.when_all_submitted(lambda: fired.append("next"))
+        assert not fired
+        result = merge_bracket(started)
+        assert fired == ["next"] and not started.pending
+        np.testing.assert_array_equal(result.mosaic, merged.mosaic)
+        np.testing.assert_array_equal(result.rgb, merged.rgb)
+        lonely = BracketStart(bracket[:1], pool)
+        lonely.when_all_submitted(lambda: fired.append("after error"))  # a failed bracket still hands on
+        assert fired[-1] == "after error"
+        with pytest.raises(BracketError, match="at least 2 frames"):
+            merge_bracket(lonely)

@@ -50,7 +50,7 @@ from f2l.capture.raw_meta import (  # noqa: F401 (RawFrame, raw_frame: re-export
 )  # fmt: skip
 
 __all__ = [
-    "BracketError", "NoiseModel", "RawFrame", "FrameInfo", "MergedHDR", "raw_frame", "merge_bracket",
+    "BracketError", "BracketStart", "NoiseModel", "RawFrame", "FrameInfo", "MergedHDR", "raw_frame", "merge_bracket",
     "bench_merge", "LUMINANCE_CD_M2_PER_UNIT",
 ]  # fmt: skip
 
@@ -181,20 +181,67 @@ def _load_signal(loader: Callable, saturation_fraction: float):
     return m, _signal(mosaic, m, m.height // 2, m.width // 2, saturation_fraction)
 
 
-def _decoded(loaders, order, prefetch: int):
-    """Yield (index, loaders[index]()) in ``order``; with ``prefetch`` = n > 0 the next n are
-    computed by n worker threads (LibRaw and numpy's large-array loops release the GIL) while
-    the current frame's arithmetic runs: at most n + 1 frames in memory."""
-    if prefetch <= 0:
-        yield from ((k, loaders[k]()) for k in order)
-        return
-    with ThreadPoolExecutor(max_workers=prefetch) as pool:
-        pending = [pool.submit(loaders[k]) for k in order[:prefetch]]
-        for j, k in enumerate(order):
-            loaded = pending.pop(0).result()
-            if j + prefetch < len(order):
-                pending.append(pool.submit(loaders[order[j + prefetch]]))
-            yield k, loaded
+class BracketStart:
+    """A bracket whose decoding has begun: metadata read and checked, processing order fixed, and
+    its first ``prefetch`` frames submitted to ``pool`` (decoded and normalised there). Made before
+    :func:`merge_bracket` consumes it, e.g. while the previous bracket finishes, so that the
+    decoder never idles between brackets; at most ``prefetch`` frames wait in memory. A problem
+    found here is kept and raised by :func:`merge_bracket`, attributed to this bracket.
+    :meth:`when_all_submitted` registers where to start the next bracket."""
+
+    def __init__(self, frames, pool: ThreadPoolExecutor | None, prefetch: int = 2,
+                 saturation_fraction: float = 0.95) -> None:
+        self.pool, self.prefetch, self.saturation_fraction = pool, max(0, int(prefetch)), saturation_fraction
+        self.on_all_submitted: Callable[[], None] | None = None
+        self.error: Exception | None = None
+        self.pending: list = []
+        self.order: list[int] = []
+        self.submitted = 0
+        try:
+            resolved = [_resolve(f) for f in frames]
+            self.metas = [m for m, _ in resolved]
+            _validate(self.metas)
+            known = [m for m in self.metas if m.width]  # RawFrame inputs: check layouts before any work
+            for m in known:
+                _check_layout(m, known[0])
+        except Exception as exc:  # BracketError / RawError: raised by merge_bracket
+            self.error = exc
+            return
+        self.order, self.neighbour = _processing_order(self.metas)
+        self.loaders = [partial(_load_signal, ld, saturation_fraction) for _, ld in resolved]
+        self.submitted = 0
+        if self.pool is not None:
+            self._submit_upto(self.prefetch)
+
+    def when_all_submitted(self, callback: Callable[[], None]) -> None:
+        """Run ``callback`` once every frame has been submitted (now, if that is already so, or
+        if the bracket failed its checks)."""
+        if self.error is not None or self.submitted == len(self.order):
+            callback()
+        else:
+            self.on_all_submitted = callback
+
+    def _submit_upto(self, count: int) -> None:
+        while self.submitted < min(count, len(self.order)):
+            self.pending.append(self.pool.submit(self.loaders[self.order[self.submitted]]))
+            self.submitted += 1
+            if self.submitted == len(self.order) and self.on_all_submitted is not None:
+                self.on_all_submitted()
+
+    def frames(self):
+        """Yield (index, (meta, signal)) in processing order, keeping ``prefetch`` frames ahead."""
+        if self.pool is None or self.prefetch == 0:
+            yield from ((k, self.loaders[k]()) for k in self.order)
+            return
+        for j, k in enumerate(self.order):
+            self._submit_upto(j + 1 + self.prefetch)
+            yield k, self.pending.pop(0).result()
+
+    def cancel(self) -> None:
+        """Drop frames decoded ahead but not consumed (the merge failed midway)."""
+        for future in self.pending:
+            future.cancel()
+        self.pending.clear()
 
 
 def _dilate(mask: np.ndarray) -> np.ndarray:
@@ -358,7 +405,7 @@ def _up(quads: np.ndarray) -> np.ndarray:  # (h, w) -> (2h, 2w)
 
 
 def merge_bracket(
-    frames: Sequence[str | os.PathLike | RawFrame],
+    frames: Sequence[str | os.PathLike | RawFrame] | BracketStart,
     *,
     noise: NoiseModel = NoiseModel(),
     saturation_fraction: float = 0.95,
@@ -371,20 +418,41 @@ def merge_bracket(
     to_rec709: bool = False,
     prefetch: int | bool = 2,
 ) -> MergedHDR:
-    """Merge RAW files (paths) or :class:`RawFrame` objects of one bracket (conventions above).
+    """Merge RAW files (paths) or :class:`RawFrame` objects of one bracket (conventions above), or a
+    :class:`BracketStart` of them (its pool and ``saturation_fraction`` then apply).
 
     ``dark_dn`` defaults to 4 read-noise sigmas. ``prefetch``: files decoded ahead in threads
     (``True`` = 1, ``False`` = 0: decode in turn). Raises :class:`BracketError` for fewer than two
     frames, frames from different cameras/sizes/CFA patterns or without exposure metadata, and
     :class:`~f2l.capture.raw_meta.RawError` for unreadable files; every message names the files.
     """
-    resolved = [_resolve(f) for f in frames]
-    metas = [m for m, _ in resolved]
-    _validate(metas)
-    known = [m for m in metas if m.width]  # RawFrame inputs: check layouts before any work
-    for m in known:
-        _check_layout(m, known[0])
-    order, neighbour = _processing_order(metas)
+    if isinstance(frames, BracketStart):
+        return _merge_started(frames, noise, frames.saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,
+                              motion_tolerance, moved_fraction, to_rec709)  # fmt: skip
+    if int(prefetch) <= 0:
+        return _merge_started(BracketStart(frames, None, 0, saturation_fraction), noise, saturation_fraction, dark_dn,
+                              align, min_shift_px, max_shift_px, motion_tolerance, moved_fraction, to_rec709)
+    with ThreadPoolExecutor(max_workers=int(prefetch)) as pool:
+        started = BracketStart(frames, pool, int(prefetch), saturation_fraction)
+        return _merge_started(started, noise, saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,
+                              motion_tolerance, moved_fraction, to_rec709)
+
+
+def _merge_started(started: BracketStart, noise, saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,
+                   motion_tolerance, moved_fraction, to_rec709) -> MergedHDR:
+    """:func:`merge_bracket` of a :class:`BracketStart`."""
+    if started.error is not None:
+        raise started.error
+    try:
+        return _merge_frames(started, noise, saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,
+                             motion_tolerance, moved_fraction, to_rec709)
+    finally:
+        started.cancel()
+
+
+def _merge_frames(started: BracketStart, noise, saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,
+                  motion_tolerance, moved_fraction, to_rec709) -> MergedHDR:
+    metas, order, neighbour = list(started.metas), started.order, started.neighbour
     factors = [m.exposure_factor for m in metas]
     ref_i, short_i, long_i = order[0], int(np.argmin(factors)), int(np.argmax(factors))
     e_ref, dark = factors[ref_i], (4.0 * noise.read_noise_dn if dark_dn is None else float(dark_dn))
@@ -393,8 +461,7 @@ def merge_bracket(
     shift_q: dict[int, tuple[float, float]] = {}  # shift relative to the reference, quads
     infos = [FrameInfo(m.path, m.exposure_s, m.f_number, m.iso, m.exposure_factor, m.ev100) for m in metas]
     warnings: list[str] = []
-    loaders = [partial(_load_signal, ld, saturation_fraction) for _, ld in resolved]
-    for i, (m, signal) in _decoded(loaders, order, int(prefetch)):
+    for i, (m, signal) in started.frames():
         _check_layout(m, None if i == ref_i else metas[ref_i])
         metas[i], info = m, infos[i]
         if i == ref_i:

@@ -132,13 +132,14 @@ def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
     return _finish_one(work, bid, frames, view_max_side, *_merge_frames(root, bid, frames))
 
 
-def _merge_frames(root: Path, bid: str, frames: list[dict]):
-    """The bracket merge itself: (merged or None, error row or None, start time)."""
+def _merge_frames(root: Path, bid: str, frames: list[dict], started=None):
+    """The bracket merge itself: (merged or None, error row or None, start time). ``started``: the
+    bracket's :class:`~f2l.capture.merge.BracketStart` when its decoding has already begun."""
     from f2l.capture.merge import merge_bracket
 
     t0 = time.perf_counter()
     try:
-        return merge_bracket([root / f["path"] for f in frames]), None, t0
+        return merge_bracket(started if started is not None else [root / f["path"] for f in frames]), None, t0
     except Exception as exc:  # BracketError / RawError name the files
         return None, _row("view", bid, frames[0]["session"], "error", str(exc), frames=len(frames)), t0
 
@@ -256,7 +257,8 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
             brackets.setdefault(r["bracket_id"], []).append(r)
     # Session by session (its views are blended as soon as its last bracket is merged, then
     # dropped: memory holds one session's views, never the dataset's). One bracket is merged at
-    # a time; the previous one's downsampling and files are written by a thread meanwhile.
+    # a time; the previous one's downsampling and files are written by a thread meanwhile, and
+    # the next one's first two frames are decoded as soon as this one's last is under way.
     items = sorted(brackets.items(), key=lambda item: (item[1][0]["session"], item[0]))
     bar = None
     if progress:
@@ -282,17 +284,28 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
             summary.probes += row["status"] == "ok"
         views.clear()
 
-    with ThreadPoolExecutor(max_workers=1) as writer:
+    from f2l.capture.merge import BracketStart
+
+    for _, frames in items:
+        frames.sort(key=lambda f: f["path"])
+    starts: dict[int, BracketStart] = {}
+
+    def start(k: int) -> None:  # begin decoding bracket k (frames go to the shared decode pool)
+        if k < len(items) and k not in starts:
+            starts[k] = BracketStart([root / f["path"] for f in items[k][1]], decoder, prefetch=2)
+            starts[k].when_all_submitted(lambda: start(k + 1))
+
+    with ThreadPoolExecutor(max_workers=1) as writer, ThreadPoolExecutor(max_workers=2) as decoder:
         pending, session = None, None
-        for bid, frames in items:
-            frames.sort(key=lambda f: f["path"])
+        for k, (bid, frames) in enumerate(items):
             if frames[0]["session"] != session:
                 if pending is not None:
                     collect(pending)
                     pending = None
                 assemble(session)
                 session = frames[0]["session"]
-            merged = _merge_frames(root, bid, frames)
+            start(k)
+            merged = _merge_frames(root, bid, frames, starts.pop(k))
             if pending is not None:
                 collect(pending)
             pending = writer.submit(_finish_one, work, bid, frames, view_max_side, *merged)
