@@ -163,3 +163,22 @@ def test_bench_capture_runs_the_real_stages(compression):
     assert row["ratio_with_assembly"] == pytest.approx((row["ingest_s"] + row["make_probes_s"]) / row["decode_s"])
     assert all(row["peak_mib"][k] >= row["work_mib"][k] >= 0 for k in ("decode", "ingest", "merge", "probes"))
     assert "(ingest+merge)/decode" in format_table([row])
+
+
+def test_a_broken_bracket_among_several_sessions_fails_alone(tmp_path):
+    """make-probes decodes the next bracket while finishing the current one: a bracket whose file
+    broke after ingest gets an error row naming the file; the sessions around it are merged."""
+    root, work = tmp_path / "raw", tmp_path / "work"
+    scene = np.full((48, 64, 3), 0.3, np.float32)
+    for k in range(3):
+        write_bracket(root / f"s{k}" / "sky", scene, EXPOSURES[:3], seed=k, compression="ljpeg")
+    run("ingest", root, "--work", work, "--json")
+    broken = root / "s1" / "sky" / "frame_01.dng"
+    broken.write_bytes(broken.read_bytes()[:200])  # truncated after ingest
+    summary = json.loads(run("make-probes", root, "--work", work, "--json").stdout)
+    rows = pq.read_table(work / "probes.parquet").to_pylist()
+    by_session = {r["session"]: r for r in rows if r["kind"] == "view"}
+    assert [by_session[s]["status"] for s in ("s0", "s1", "s2")] == ["unplaced", "error", "unplaced"]
+    assert "frame_01.dng" in by_session["s1"]["message"] and "truncated" in by_session["s1"]["message"]
+    assert (work / by_session["s0"]["path"]).is_file() and (work / by_session["s2"]["path"]).is_file()
+    assert summary["errors"] == 1
