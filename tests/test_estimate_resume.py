@@ -75,7 +75,11 @@ def test_ray_executor_matches_local(first_run, small_shards, tmp_path):
     rows = _rows(tmp_path / "ray")
     assert rows.keys() == local.keys()
     for k in local:
-        np.testing.assert_allclose(rows[k]["params"], local[k]["params"], rtol=1e-6, atol=1e-9)
+        # The same convex sh9 problem in another process, whose BLAS may take other threads and
+        # kernels: IRLS stops ~1e-5 (relative) short of its fixed point and float32 Gram matrices
+        # leave ~1e-6 of noise (linear.solve_psi), so parameters agree to well within 1e-4.
+        np.testing.assert_allclose(rows[k]["params"], local[k]["params"], rtol=1e-4,
+                                   atol=1e-4 * np.abs(local[k]["params"]).max())
         assert (tmp_path / "ray" / rows[k]["probe_path"]).is_file()
 
 

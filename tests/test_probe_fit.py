@@ -86,15 +86,15 @@ def test_round_trip_recovers_sun_turbidity_kappa(model, fit_unit):
     assert f.probe.shape == (GRID.height, GRID.width, 3) and f.probe.dtype == np.float32
     assert np.all(f.probe[GRID.sky_rows:] == 0.0)  # sky-domain model: nothing below the horizon
     assert f.iterations > 0 and f.runtime_s > 0
-    # the returned loss is the loss of the returned parameters
-    # (to ~1e-4 only: the sun lobe's quadrature, sub-rows per texel, is shared by the batch of
-    # starts, so a vector's radiance and loss depend slightly on the other starts of its batch)
-    assert _loss_of(model, f.params, model.probe(TRUE)) == pytest.approx(f.loss, rel=1e-3)
+    # the returned loss is the loss of the returned parameters, evaluated alone: each sun keeps
+    # its own lobe quadrature whatever else is in the batch, so only float64 summation order
+    # differs (bound: ~L * 2^-52 relative, L = 1,024 sky texels)
+    assert _loss_of(model, f.params, model.probe(TRUE)) == pytest.approx(f.loss, rel=1e-9)
 
 
 def test_round_trip_recovers_sun_intensity_and_reaches_zero_loss(fit_unit):
     np.testing.assert_allclose(fit_unit.params[3:6], TRUE[3:6], rtol=0.05)
-    assert fit_unit.loss < 5e-4  # the truth gives 1e-11; kappa's sub-texel lobe is flat in the loss
+    assert fit_unit.loss < 1e-5  # the truth gives 1e-11 (see test_scaled_probe_gives_scaled_intensities)
 
 
 def test_scaled_probe_gives_the_same_sun_direction(fit_unit, fit_big):
@@ -114,9 +114,14 @@ def test_fit_loss_is_scale_invariant(model, own_probe, fit_unit):
 
 
 def test_scaled_probe_gives_scaled_intensities(fit_unit, fit_big):
-    np.testing.assert_allclose(fit_big.params[:6] / BIG, fit_unit.params[:6], rtol=0.02)
-    assert fit_big.params[8] == pytest.approx(fit_unit.params[8], rel=0.02)
-    assert fit_big.loss == pytest.approx(fit_unit.loss, rel=0.25, abs=1e-5)
+    """The fit is the same problem at any exposure, so both reach the same optimum. The truth's
+    loss is ~1e-11; the Charbonnier term (eps = 1e-6) is |r|-like near r = 0, so L-BFGS stops
+    wherever its line search meets that kink: within ~1e-6 of the optimum's loss on every
+    OpenBLAS/ATen code path (`make test-cpu-paths`: 1e-11 to 2.3e-6), parameters within 1e-4."""
+    assert fit_unit.loss < 1e-5 and fit_big.loss < 1e-5
+    np.testing.assert_allclose(fit_big.params[:6] / BIG, fit_unit.params[:6], rtol=1e-3)
+    np.testing.assert_allclose(fit_big.params[6:], fit_unit.params[6:], rtol=1e-3)
+    np.testing.assert_allclose(fit_unit.params, TRUE, rtol=1e-3)
 
 
 # -- 2. a CIE clear sky (not the model's own sky) --------------------------------------------------

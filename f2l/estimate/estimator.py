@@ -67,14 +67,22 @@ class EstimatorConfig:
     fixed_albedo: tuple[float, float, float] | None = None
     ground_albedo_init: float = 0.2
     albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
-    # IRLS iterations for linear models: before and after the albedo split. From the L2 start the
-    # objective is within 0.1% of its optimum after ~15 (measured on synthetic faces).
-    irls_iters: tuple[int, int] = (18, 6)
+    # IRLS iterations for linear models, before and after the albedo split: caps; each round stops
+    # once psi moves by less than `irls_tolerance` (relative). With the floor below, 40 + 12 reach
+    # the fixed point to ~1e-6 (synthetic faces, `tests/test_estimate_linear.py`); the former
+    # (18, 6) stopped 1e-3 to 1e-2 short of it, where the CPU's rounding decided the last digits.
+    irls_iters: tuple[int, int] = (40, 12)
+    irls_tolerance: float = 1e-6
     # the first `irls_warm_iters` of the first round run on every `irls_warm_stride`-th pixel:
     # that half-size problem's optimum is a start that 4 full iterations polish (psi within
     # 2.8e-3 of the optimum, as close as 20 full iterations, in 11/20 of the time)
     irls_warm_iters: int = 14
     irls_warm_stride: int = 2
+    # IRLS weights 1 / (2 max(C(r), floor * scale)): the Charbonnier term (eps = 1e-6) is |r|-like,
+    # and with a tiny floor the pixels that fit almost exactly get weights so large that float32
+    # rounding moves the solution (0.5% across CPU code paths, issue 18) and IRLS crawls. See
+    # linear.solve_psi for the choice of floor.
+    irls_floor: float = 1e-3
     # sun models (``radiance_parts``): hybrid sky transport and the global sun search
     sun_starts: int = 3  # search candidates refined by L-BFGS: distinct suns (>= 25 deg apart) + no sun
     sun_core_texels: int = 48  # lobe texels with exact visibility (sky_transport.py)
@@ -503,7 +511,7 @@ def _estimate_linear_fit(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_s
         solve = functools.partial(
             linear.solve_psi, neg_basis=prob.neg_basis.numpy(), neg_w=prob.neg_weights.numpy(),
             prior_diag=prior, eps=cfg.charbonnier_eps, scale=prob.target_scale,
-            neg_weight=cfg.negativity_weight, tol=cfg.tolerance)
+            neg_weight=cfg.negativity_weight, tol=cfg.irls_tolerance, floor=cfg.irls_floor)
         warm = min(cfg.irls_warm_iters, iters - 1) if round_ == 0 and cfg.irls_warm_stride > 1 else 0
         if warm > 0 and len(A) >= 64 * cfg.irls_warm_stride:
             psi, its = solve(A=A[:: cfg.irls_warm_stride], y=y[:: cfg.irls_warm_stride], psi0=psi, iters=warm)

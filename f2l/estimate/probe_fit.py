@@ -19,6 +19,7 @@ lets the worst start slow the others), otherwise from ``initial_points()``.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -29,6 +30,10 @@ from f2l.estimate.params import BoxTransform
 from f2l.lighting.grid import LatLongGrid
 
 __all__ = ["ProbeFit", "ProbeFitError", "fit_probe", "probe_fit_loss"]
+
+START_MARGIN = 1e-3  # starts sit at least this fraction of a bounded range inside it (a sigmoid
+#                     at its 1e-6 clip has no gradient left: a kappa start at 8192 could never move)
+RESTARTS = 3  # fresh L-BFGS memories after a run stops early (a flat line-search step)
 
 EPS = 1e-6
 REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -122,12 +127,11 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
     lo_x, hi_x = lo.copy(), hi.copy()
     lo_x[log_idx], hi_x[log_idx] = -np.inf, np.inf
     box = BoxTransform(lo_x, hi_x)
-    x0 = box.to_unconstrained(starts)
+    x0 = box.to_unconstrained(starts, margin=START_MARGIN)
     x0[:, log_idx] = np.log(np.maximum(starts[:, log_idx] / scale, 1e-12))
     dtype = torch.float64
     target = torch.as_tensor(target_np / scale, dtype=dtype)
     weights = torch.as_tensor(w, dtype=dtype)
-    x = torch.tensor(x0, dtype=dtype, requires_grad=True)
     log_mask = torch.zeros(model.num_params, dtype=torch.bool)
     log_mask[torch.as_tensor(log_idx)] = True
 
@@ -136,23 +140,21 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
         safe = torch.where(log_mask, x_, torch.zeros_like(x_))  # no exp() of other columns
         return torch.where(log_mask, torch.exp(safe) * factor, box.to_params(x_))
 
+    def objective(x_: torch.Tensor) -> torch.Tensor:
+        return probe_fit_loss(model.radiance(to_params(x_)), target, weights, 1.0)
+
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
-        optimiser = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, tolerance_grad=1e-12,
-                                      tolerance_change=tolerance, history_size=20,
-                                      line_search_fn="strong_wolfe")
-
-        def closure():
-            optimiser.zero_grad()
-            loss = probe_fit_loss(model.radiance(to_params(x)), target, weights, 1.0).sum()
-            loss.backward()
-            return loss
-
-        optimiser.step(closure)
-        iterations = int(optimiser.state[optimiser._params[0]].get("n_iter", 0))
+        # Every start is its own L-BFGS run: one L-BFGS over the batch's summed loss shares a line
+        # search and a curvature memory, so a poor start stalls the good one and where it stops
+        # depends on the CPU's rounding (issue 18: 2e-5 to 1.1e-4 loss across OpenBLAS/ATen paths).
+        runs = [_minimise(objective, torch.tensor(row[None], dtype=dtype), max_iter, tolerance)
+                for row in x0]
+        x = torch.cat([r[0] for r in runs])
+        iterations = max(r[1] for r in runs)
         with torch.no_grad():
-            losses = probe_fit_loss(model.radiance(to_params(x)), target, weights, 1.0).numpy()
+            losses = objective(x).numpy()
             params = to_params(x, scale)
     finally:
         torch.set_num_threads(prev_threads)
@@ -168,3 +170,39 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
         sun_direction=model.sun_direction(best_params), runtime_s=time.perf_counter() - t0,
         start_losses=[float(v) for v in losses],
     )
+
+
+def _minimise(objective, x0: torch.Tensor, max_iter: int, tolerance: float) -> tuple[torch.Tensor, int]:
+    """L-BFGS (strong Wolfe) on one start; returns (x, iterations).
+
+    The loss is scale-normalised (the probe is divided by its mean luminance), so ``tolerance``
+    is relative to a loss of order 1. torch's L-BFGS also stops when a line search returns a tiny
+    step (a flat step, or a curvature memory gone stale); such an early stop is rounding-dependent,
+    so the run restarts with a fresh memory, up to ``RESTARTS`` times, until a restart no longer
+    lowers the loss by more than ``tolerance`` or the ``max_iter`` budget is spent.
+    """
+    x = x0.detach().clone().requires_grad_(True)
+    used = 0
+    with torch.no_grad():
+        previous = float(objective(x).sum())
+    for _ in range(1 + RESTARTS):
+        if used >= max_iter:
+            break
+        optimiser = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter - used, tolerance_grad=1e-12,
+                                      tolerance_change=tolerance, history_size=20,
+                                      line_search_fn="strong_wolfe")
+
+        def closure():
+            optimiser.zero_grad()
+            loss = objective(x).sum()
+            loss.backward()
+            return loss
+
+        optimiser.step(closure)
+        used += max(1, int(optimiser.state[optimiser._params[0]].get("n_iter", 0)))
+        with torch.no_grad():
+            loss = float(objective(x).sum())
+        if not loss < previous - tolerance * max(1.0, abs(previous)):
+            break  # this run made no progress: a stationary point, not a stale memory
+        previous = loss
+    return x.detach(), used

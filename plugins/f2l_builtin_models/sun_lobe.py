@@ -149,7 +149,7 @@ def sun_lobe_sparse(
             else:
                 index = torch.as_tensor(idx, device=device)
                 args = (sun_zenith_rad[index], sun_azimuth_rad[index], kappa[index])
-            vals, flat = _group(grid, R, S, C, r_lo[idx], c_lo[idx], n_rows, row_sa, dphi, w, *args)
+            vals, flat = _group(grid, R, S, C, r_lo[idx], c_lo[idx], sub[idx], n_rows, row_sa, dphi, w, *args)
             if idx.size == B:
                 return vals, flat
             parts.append((idx, vals, flat))
@@ -185,16 +185,21 @@ def sun_lobe(
     return out.scatter_add_(1, flat, vals)
 
 
-def _group(grid, R, S, C, r_lo, c_lo, n_rows, row_sa, dphi, w, ps, ts, kappa):
+def _group(grid, R, S, C, r_lo, c_lo, sub_rows, n_rows, row_sa, dphi, w, ps, ts, kappa):
     """Texel means (G, R*C) and their flat indices for suns sharing one window shape."""
     W = grid.width
     dtype, device = ps.dtype, ps.device
     G = len(r_lo)
     r_lo = np.minimum(r_lo, n_rows - R)
     rows = r_lo[:, None] + np.arange(R)[None, :]  # (G, R)
-    frac = ((np.arange(S)[:, None] + 0.5 * (1.0 + _GL_X)[None, :]) / S).reshape(-1)  # (3S,)
-    phi_np = ((rows[:, :, None] + frac) * dphi).reshape(G, -1)  # (G, N) nodes, N = 3 S R
-    wsin_np = np.sin(phi_np) * np.tile(0.5 * _GL_W / S * dphi, S * R)  # GL weight x sin(phi)
+    # Each sun keeps its own S_g sub-rows (its quadrature never depends on the other suns of the
+    # batch); the S - S_g padding sub-rows repeat real nodes with weight 0.
+    s_g = np.asarray(sub_rows, dtype=np.int64)[:, None]  # (G, 1)
+    k = np.arange(S)[None, :]  # (1, S)
+    frac = ((k % s_g)[:, :, None] + 0.5 * (1.0 + _GL_X)[None, None, :]) / s_g[:, :, None]  # (G, S, 3)
+    node_w = np.where(k < s_g, 1.0, 0.0)[:, :, None] * (0.5 * _GL_W * dphi)[None, None, :] / s_g[:, :, None]
+    phi_np = ((rows[:, :, None] + frac.reshape(G, 1, 3 * S)) * dphi).reshape(G, -1)  # (G, N), N = 3 S R
+    wsin_np = np.sin(phi_np) * np.tile(node_w.reshape(G, 3 * S), (1, R))  # GL weight x sin(phi)
     phi = torch.as_tensor(phi_np, dtype=dtype, device=device)
     wsin = torch.as_tensor(wsin_np.reshape(G, R, 3 * S), dtype=dtype, device=device)
     cols = (c_lo[:, None] + np.arange(C)[None, :]) % W  # (G, C)
