@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from f2l.estimate.probe_fit import REC709_LUMA, ProbeFit, ProbeFitError, probe_fit_loss
+from f2l.estimate.probe_fit import REC709_LUMA, ProbeFit, ProbeFitError, minimise_restarted, probe_fit_loss
 
 VARIANT_FF = "ae_ff"
 
@@ -45,26 +45,19 @@ def fit_ae_to_probe(model, probe: np.ndarray, *, max_iter: int = 150, tolerance:
         x0[:, model.exposure_index] -= log_scale
         target = torch.as_tensor(target_np / scale, dtype=torch.float32)
         weights = torch.as_tensor(w, dtype=torch.float32)
-        x = torch.tensor(x0, dtype=torch.float32, requires_grad=True)
 
         def losses(params: torch.Tensor) -> torch.Tensor:
             return probe_fit_loss(model.radiance(params), target, weights, 1.0)
 
+        x = torch.as_tensor(x0, dtype=torch.float32)
         with torch.no_grad():
-            ff_loss = float(losses(torch.as_tensor(x0[:1], dtype=torch.float32))[0])
+            ff_loss = float(losses(x[:1])[0])
         iterations = 0
-        if max_iter > 0:
-            optimiser = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, tolerance_grad=1e-9,
-                                          tolerance_change=tolerance, history_size=20, line_search_fn="strong_wolfe")
-
-            def closure():
-                optimiser.zero_grad()
-                loss = losses(x).sum()
-                loss.backward()
-                return loss
-
-            optimiser.step(closure)
-            iterations = int(optimiser.state[optimiser._params[0]].get("n_iter", 0))
+        if max_iter > 0:  # each start on its own (probe_fit: batched starts stop CPU-dependently)
+            runs = [minimise_restarted(losses, x[i : i + 1], max_iter, tolerance, tolerance_grad=1e-9)
+                    for i in range(len(x))]
+            x = torch.cat([r[0] for r in runs])
+            iterations = max(r[1] for r in runs)
         with torch.no_grad():
             final = losses(x).numpy().astype(np.float64)
     finally:

@@ -149,7 +149,7 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
         # Every start is its own L-BFGS run: one L-BFGS over the batch's summed loss shares a line
         # search and a curvature memory, so a poor start stalls the good one and where it stops
         # depends on the CPU's rounding (issue 18: 2e-5 to 1.1e-4 loss across OpenBLAS/ATen paths).
-        runs = [_minimise(objective, torch.tensor(row[None], dtype=dtype), max_iter, tolerance)
+        runs = [minimise_restarted(objective, torch.tensor(row[None], dtype=dtype), max_iter, tolerance)
                 for row in x0]
         x = torch.cat([r[0] for r in runs])
         iterations = max(r[1] for r in runs)
@@ -172,8 +172,10 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
     )
 
 
-def _minimise(objective, x0: torch.Tensor, max_iter: int, tolerance: float) -> tuple[torch.Tensor, int]:
-    """L-BFGS (strong Wolfe) on one start; returns (x, iterations).
+def minimise_restarted(objective, x0: torch.Tensor, max_iter: int, tolerance: float,
+                       tolerance_grad: float = 1e-12) -> tuple[torch.Tensor, int]:
+    """L-BFGS (strong Wolfe) on one start (1, P) minimising ``objective(x).sum()``; returns
+    (x, iterations).
 
     The loss is scale-normalised (the probe is divided by its mean luminance), so ``tolerance``
     is relative to a loss of order 1. torch's L-BFGS also stops when a line search returns a tiny
@@ -188,7 +190,7 @@ def _minimise(objective, x0: torch.Tensor, max_iter: int, tolerance: float) -> t
     for _ in range(1 + RESTARTS):
         if used >= max_iter:
             break
-        optimiser = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter - used, tolerance_grad=1e-12,
+        optimiser = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter - used, tolerance_grad=tolerance_grad,
                                       tolerance_change=tolerance, history_size=20,
                                       line_search_fn="strong_wolfe")
 
