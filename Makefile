@@ -4,12 +4,14 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces clean
+.PHONY: setup demo test test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@# setuptools reports that it implements the editable install with a meta path finder (the
+	@# plugins/ and schemas/ folders map into packages): expected here, so not shown
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -19,6 +21,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The suite once per CPU code path (OpenBLAS kernel, ATen SIMD level, MKL instruction set), one
+# machine, ~2 min each; table in build/cpu_paths.md (docs/numerics.md). Not part of `make test`.
+test-cpu-paths: $(STAMP)
+	$(BIN)/python tests/cpu_paths.py --report build/cpu_paths.md
 
 bench: $(STAMP)
 	$(BIN)/f2l bench --faces 1
@@ -33,7 +40,8 @@ prior: $(STAMP)
 		--out plugins/f2l_builtin_models/data/sunsky_prior.json --json
 
 # Rebuild the shipped sky-autoencoder weights (+ latent prior, model card, loss curve) from the
-# project's own sky corpus (docs/ae.md): 16.5 min on 2 cores, bit-identical tensors. Resumable.
+# project's own sky corpus (docs/ae.md): 16.5 min on 2 cores; bit-identical tensors on the machine that
+# trained them, the same held-out metrics elsewhere (docs/numerics.md). Resumable.
 ae-weights: $(STAMP)
 	$(BIN)/f2l ae-corpus --out build/ae_corpus --n-train 4000 --n-heldout 150 --seed 0 --json
 	$(BIN)/f2l train-ae build/ae_corpus/train --heldout build/ae_corpus/heldout --work-dir build/ae_train \

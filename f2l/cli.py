@@ -29,8 +29,19 @@ def _version_callback(value: bool) -> None:
 @app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True, help="Show the version and exit."),
+    debug_log: Optional[Path] = typer.Option(
+        None, "--debug-log", envvar="F2L_DEBUG_LOG",
+        help="Append debug messages (e.g. third-party libraries' own log lines) to this file."),
 ) -> None:
     """f2l — faces to light."""
+    if debug_log is not None:
+        import logging
+
+        handler = logging.FileHandler(debug_log, encoding="utf-8")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(name)s %(levelname)s %(message)s"))
+        root = logging.getLogger("f2l")
+        root.addHandler(handler)
+        root.setLevel(logging.DEBUG)
 
 
 def _grid(grid: str):

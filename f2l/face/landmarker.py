@@ -21,14 +21,20 @@ same pixel scale, smaller = nearer the camera (MediaPipe's convention).
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import os
+import sys
+import tempfile
 import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+_log = logging.getLogger(__name__)
 
 DETECTOR_MEMBER = "face_detector.tflite"
 LANDMARKS_MEMBER = "face_landmarks_detector.tflite"
@@ -80,6 +86,30 @@ def _interpreter_class():
     return Interpreter
 
 
+@contextlib.contextmanager
+def _native_stderr_to_debug_log():
+    """Route what native code writes to file descriptor 2 while the block runs (LiteRT prints
+    "INFO: Created TensorFlow Lite XNNPACK delegate for CPU." from C++, ignoring
+    TF_CPP_MIN_LOG_LEVEL) to this module's logger at DEBUG level instead of the terminal."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable fd 2 (embedded interpreters): leave it alone
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            for line in sink.read().decode("utf-8", "replace").splitlines():
+                if line.strip():
+                    _log.debug("LiteRT: %s", line.strip())
+
+
 @lru_cache(maxsize=4)
 def _interpreters(task_path: str, check_sha256: bool, threads: int):
     from f2l.synth.facemesh import canonical_face_mesh
@@ -88,7 +118,7 @@ def _interpreters(task_path: str, check_sha256: bool, threads: int):
     Interpreter = _interpreter_class()
     out = []
     try:
-        with zipfile.ZipFile(task_path) as zf:
+        with zipfile.ZipFile(task_path) as zf, _native_stderr_to_debug_log():
             for member in (DETECTOR_MEMBER, LANDMARKS_MEMBER):
                 it = Interpreter(model_content=zf.read(member), num_threads=int(threads))
                 it.allocate_tensors()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import ast
 import json
+from importlib import resources
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -57,15 +58,18 @@ class SchemaError(ValueError):
 
 # -- locating and loading schemas ------------------------------------------------------------
 def schemas_dir() -> Path:
-    """Directory holding ``<name>.schema.json`` (repo ``schemas/``, else packaged ``f2l/schemas``)."""
-    here = Path(__file__).resolve()
-    for candidate in (here.parents[2] / "schemas", here.parents[1] / "schemas"):
-        if candidate.is_dir():
-            return candidate
-    raise FileNotFoundError(
-        f"f2l schemas directory not found (looked in {here.parents[2] / 'schemas'} and "
-        f"{here.parents[1] / 'schemas'})"
-    )
+    """Directory holding ``<name>.schema.json``: the package ``f2l.schemas``, whose single source is
+    the repository's top-level ``schemas/`` (pyproject maps it in; an editable install reads the
+    repository's folder, a wheel carries a copy)."""
+    try:
+        # a data folder without __init__.py is a namespace package: files() gives a
+        # MultiplexedPath, whose joinpath of an existing file is a real path
+        folder = Path(str(resources.files("f2l.schemas").joinpath("face_record.schema.json"))).parent
+    except ModuleNotFoundError:
+        folder = Path(__file__).resolve().parents[2] / "schemas"  # a source tree on sys.path
+    if not (folder / "face_record.schema.json").is_file():
+        raise FileNotFoundError(f"f2l schemas not found in {folder} (is f2l installed with its package data?)")
+    return folder
 
 
 @lru_cache(maxsize=None)

@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import tomllib
+from importlib import resources
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -56,13 +57,18 @@ class Pipeline:
 
 
 def pipelines_dir() -> Path:
-    """The repository's ``pipelines/`` folder (or a packaged ``f2l/pipelines``)."""
-    here = Path(__file__).resolve()
-    for candidate in (here.parents[2] / "pipelines", here.parents[1] / "pipelines"):
-        if (candidate / DEFAULT_PIPELINE).is_file():
-            return candidate
-    raise FileNotFoundError(f"default pipeline {DEFAULT_PIPELINE} not found (looked in "
-                            f"{here.parents[2] / 'pipelines'} and {here.parents[1] / 'pipelines'})")
+    """The package ``f2l.pipelines``, whose single source is the repository's top-level
+    ``pipelines/`` (pyproject maps it in; a wheel carries a copy)."""
+    try:
+        # a data folder without __init__.py is a namespace package: files() gives a
+        # MultiplexedPath, whose joinpath of an existing file is a real path
+        folder = Path(str(resources.files("f2l.pipelines").joinpath(DEFAULT_PIPELINE))).parent
+    except ModuleNotFoundError:
+        folder = Path(__file__).resolve().parents[2] / "pipelines"  # a source tree on sys.path
+    if not (folder / DEFAULT_PIPELINE).is_file():
+        raise FileNotFoundError(f"default pipeline {DEFAULT_PIPELINE} not found in {folder} "
+                                "(is f2l installed with its package data?)")
+    return folder
 
 
 def default_pipeline_path() -> Path:
