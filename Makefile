@@ -8,10 +8,12 @@ STAMP := $(VENV)/.installed
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	@# setuptools reports that it implements the editable install with a meta path finder (the
-	@# plugins/ and schemas/ folders map into packages): expected here, so not shown
-	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/python -m pip install --quiet -e '.[test]'
+	@# -qq: pip shows errors only (a machine's pip configuration may name package locations that
+	@# do not exist, and pip warns about each for every package); setuptools reports that it
+	@# implements the editable install with a meta path finder (plugins/ and schemas/ map into
+	@# packages): expected here, so not shown
+	$(BIN)/python -m pip install -qq --upgrade pip
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/python -m pip install -qq -e '.[test]'
 	touch $(STAMP)
 
 setup: $(STAMP)
