@@ -7,7 +7,6 @@ import json
 import re
 import shutil
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -168,13 +167,10 @@ PHOTO_SIZE, FOCAL, DISTANCE, GREY = 256, 700.0, 60.0, 128
 
 @pytest.fixture(scope="module")
 def grey_photo():
-    lin = ((GREY / 255 + 0.055) / 1.055) ** 2.4
-    return SimpleNamespace(
-        display=np.full((PHOTO_SIZE, PHOTO_SIZE, 3), GREY, np.uint8),
-        linear=np.full((PHOTO_SIZE, PHOTO_SIZE, 3), lin, np.float32),
-        clipped=np.zeros((PHOTO_SIZE, PHOTO_SIZE), bool),
-        black=np.zeros((PHOTO_SIZE, PHOTO_SIZE), bool),
-        focal_px=FOCAL, focal_source="default", orientation=1, exif={}, kind="png")
+    from f2l.face.photo import Photo
+
+    return Photo(path="grey.png", kind="png", codes=np.full((PHOTO_SIZE, PHOTO_SIZE, 3), GREY, np.uint8),
+                 focal_px=FOCAL, focal_source="default", orientation=1, exif={})
 
 
 def synthetic_landmarks(yaw, pitch=0.0, roll=0.0):

@@ -174,7 +174,7 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
         raise ValueError(f"transport_pixels must be one of {TRANSPORT_PIXELS}, "
                          f"got {options.transport_pixels!r}")
     t0 = time.perf_counter()
-    hw = photo.linear.shape[:2]
+    hw = photo.shape
     lm = np.asarray(landmarks, dtype=np.float64)
     mesh_xy = lm[: geometry.NUM_MESH_LANDMARKS, :2]
     size_px = float((mesh_xy.max(0) - mesh_xy.min(0)).max())
@@ -199,10 +199,22 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     pixel_rc = rc_all[hit].astype(np.int32)
 
     xs, ys, k = _footprint_samples(view)
-    rgb = _resample(photo.linear, xs, ys, k, order=1).mean(2).reshape(-1, 3)[hit]
-    clipped = _resample(photo.clipped.astype(np.uint8), xs, ys, k, order=0).any(2).ravel()[hit]
-    black = _resample(photo.black.astype(np.uint8), xs, ys, k, order=0).all(2).ravel()[hit]
-    crop = _resample(photo.display.astype(np.float32), xs, ys, k, order=1).mean(2)
+    # only the photo's rows and columns that the footprints touch are read (a large photo is
+    # never converted whole: Photo.rows)
+    (ry1, _), (rx1, _) = _taps(ys, hw[0], 1), _taps(xs, hw[1], 1)
+    rows, c0, c1 = np.unique(ry1), int(rx1.min()), int(rx1.max()) + 1
+    part = photo.rows(rows, slice(c0, c1))
+    local_y = np.searchsorted(rows, np.clip(np.floor(ys - 0.5), 0, hw[0] - 1).astype(np.int64))
+    ys_l = ys - rows[local_y] + local_y  # footprints in the (rows x [c0, c1)) sub-image
+    xs_l = xs - c0
+
+    def sample(image, order):
+        return _resample(image, xs_l, ys_l, k, order)
+
+    rgb = sample(part["linear"], 1).mean(2).reshape(-1, 3)[hit]
+    clipped = sample(part["clipped"].astype(np.uint8), 0).any(2).ravel()[hit]
+    black = sample(part["black"].astype(np.uint8), 0).all(2).ravel()[hit]
+    crop = sample(part["display"], 1).mean(2)
     crop = np.clip(np.round(crop), 0, 255).astype(np.uint8)
 
     centres = pixel_rc[:, ::-1] + 0.5
@@ -235,12 +247,17 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
 
 def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
     """All faces of one photo: a list of :class:`FaceFit` or :class:`Rejected`, score order."""
+    from f2l.face.photo import DETECTION_MAX_SIDE
+
     t0 = time.perf_counter()
-    found = landmarker(photo.display, max_faces=options.max_faces)
+    image, scale = photo.detection_image(DETECTION_MAX_SIDE)  # a large photo: a reduced copy
+    found = landmarker(image, max_faces=options.max_faces)
+    del image
     landmarks_s = (time.perf_counter() - t0) / max(1, len(found))
     out = []
     for i, lms in enumerate(found):
-        fit = fit_face(photo, lms.points, i, options, lms.detection.score, lms.presence)
+        points = lms.points / scale if scale != 1.0 else lms.points  # x, y and z scale alike
+        fit = fit_face(photo, points, i, options, lms.detection.score, lms.presence)
         if isinstance(fit, FaceFit):
             fit.timings["landmarks_s"] = round(landmarks_s, 4)
         out.append(fit)
@@ -256,8 +273,8 @@ def face_record(fit: FaceFit, photo, face_id: str, options: FitOptions, *,
     head = fit.head
     meta = {
         "fit": options.to_meta(),
-        "crop": {**fit.view.to_meta(), "photo_height": int(photo.linear.shape[0]),
-                 "photo_width": int(photo.linear.shape[1])},
+        "crop": {**fit.view.to_meta(), "photo_height": int(photo.shape[0]),
+                 "photo_width": int(photo.shape[1])},
         "camera": {"focal_px": float(photo.focal_px), "focal_source": photo.focal_source,
                    "orientation": int(photo.orientation)},
         "pose_deg": {"yaw": head.yaw_deg, "pitch": head.pitch_deg, "roll": head.roll_deg},

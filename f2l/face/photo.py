@@ -22,6 +22,13 @@ or the RAW's flip applied, row 0 at the top):
   else a 35 mm-equivalent ``DEFAULT_FOCAL_35MM_MM`` (50 mm: diagonal field of view ≈ 46.8°).
   Orientation swaps width and height, not the diagonal, so it never changes ``focal_px``.
 
+Large photos: a photo above ``MAX_PIXELS`` (250 MP; ``$F2L_MAX_PHOTO_PIXELS``) is refused from its
+header, before decoding. Within it, a photo costs its source codes (8/16-bit: kept as they are;
+``linear``, ``clipped``, ``black`` are derived on first use) plus Pillow's buffer while decoding;
+face fitting detects on a reduced copy (``DETECTION_MAX_SIDE``) and reads only the rows and
+columns its footprints sample (:meth:`Photo.rows`). A 12,000 × 12,000 PNG without a face: 1.1 GB
+peak RSS for `f2l fit-faces` (3.2 GB before); a 100 MP 16-bit TIFF with a face: 1.1 GB (3.4 GB).
+
 EXIF comes from Pillow for JPEG/PNG and from ``exifread`` for RAW and TIFF. Pillow cannot decode
 16-bit-RGB or float TIFFs, so TIFFs go through ``tifffile`` when it is installed; Pillow reads
 16-bit *RGB* PNGs as their high bytes, so those load with 8-bit precision. Bad input raises
@@ -31,13 +38,14 @@ may write "Unexpected end of file" to stderr for a truncated RAW).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import struct
 import zlib
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +53,11 @@ import numpy as np
 DEFAULT_FOCAL_35MM_MM = 50.0
 DIAGONAL_35MM_MM = math.hypot(36.0, 24.0)  # 43.2666 mm
 MIN_SIZE = 16
+# Photos above this many pixels are refused before decoding (override: $F2L_MAX_PHOTO_PIXELS). At
+# 250 MP a 16-bit RGB source alone is 1.5 GB; fit-faces reads only rows it samples beyond that.
+MAX_PIXELS = 250_000_000
+# Faces are detected on a copy reduced to this long side (fit.py), then fitted at full resolution.
+DETECTION_MAX_SIDE = 4096
 BLACK_CODE_8BIT = 2
 CLIP_FRACTION = 0.98  # RAW: fraction of full scale (or of the sensor's saturation level) that counts as clipped
 RAW_PREVIEW_P99, FLOAT_PREVIEW_P99 = 0.8, 0.9
@@ -79,20 +92,89 @@ class PhotoError(ValueError):
         return PhotoError, (self.path, self.reason)
 
 
-@dataclass
+@dataclass(eq=False)
 class Photo:
-    """A decoded photo; the module docstring states each field's conventions."""
+    """A decoded photo; the module docstring states each field's conventions.
+
+    Memory stays near the size of the source encoding: 8/16-bit sources keep their codes
+    (``codes``, oriented, (H, W, 3) uint8/uint16) and ``linear``, ``clipped``, ``black`` (and for
+    16-bit, ``display``) are made from them on first use; face fitting reads only the rows it
+    samples (:meth:`rows`) and detects on :meth:`detection_image`. RAW and float sources hold
+    their arrays."""
 
     path: str
     kind: str  # "raw" | "jpeg" | "png" | "tiff"
-    display: np.ndarray  # (H, W, 3) uint8 sRGB
-    linear: np.ndarray  # (H, W, 3) float32 linear RGB >= 0
-    clipped: np.ndarray  # (H, W) bool
-    black: np.ndarray  # (H, W) bool
+    codes: np.ndarray  # (H, W, 3) uint8 / uint16 source codes, or float32 linear (RAW, float TIFF)
     focal_px: float
     focal_source: str  # "exif-35mm" | "exif-focal-plane" | "default"
     orientation: int  # EXIF orientation applied (1 = none)
     exif: dict
+    masks: tuple | None = None  # (display, clipped, black) held explicitly (RAW, float TIFF)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.codes.shape[0], self.codes.shape[1]
+
+    def rows(self, index: np.ndarray, cols: slice = slice(None)) -> dict:
+        """``linear`` (n, w, 3) float32, ``clipped`` / ``black`` (n, w) bool and ``display``
+        (n, w, 3) uint8 of the image rows ``index`` and columns ``cols``, computed from those
+        pixels only."""
+        index = np.asarray(index)
+        if self.masks is not None:
+            display, clipped, black = self.masks
+            return {"linear": self.codes[index, cols], "clipped": clipped[index, cols],
+                    "black": black[index, cols], "display": display[index, cols]}
+        return _code_planes(self.codes[index, cols])
+
+    @cached_property
+    def _full(self) -> dict:
+        return self.rows(np.arange(self.shape[0]))
+
+    @property
+    def linear(self) -> np.ndarray:  # (H, W, 3) float32
+        return self.codes if self.masks is not None else self._full["linear"]
+
+    @property
+    def display(self) -> np.ndarray:  # (H, W, 3) uint8
+        if self.masks is not None:
+            return self.masks[0]
+        return self.codes if self.codes.dtype == np.uint8 else self._full["display"]
+
+    @property
+    def clipped(self) -> np.ndarray:  # (H, W) bool
+        return self.masks[1] if self.masks is not None else self._full["clipped"]
+
+    @property
+    def black(self) -> np.ndarray:  # (H, W) bool
+        return self.masks[2] if self.masks is not None else self._full["black"]
+
+    def detection_image(self, max_side: int) -> tuple[np.ndarray, float]:
+        """(display reduced so its long side is <= ``max_side``, its scale = reduced / full px).
+
+        An integer box reduction (the mean of f x f display pixels), made from blocks of rows, so
+        a large photo is never held in a second full-size form. Photos within the limit come
+        back as ``display`` itself, scale 1."""
+        h, w = self.shape
+        f = max(1, math.ceil(max(h, w) / max(1, int(max_side))))
+        if f == 1:
+            return self.display, 1.0
+        hr, wr = h // f, w // f
+        out = np.empty((hr, wr, 3), np.uint8)
+        block = max(1, (1 << 22) // max(1, w * f))  # reduced rows per step (~4M source pixels)
+        for r0 in range(0, hr, block):
+            r1 = min(hr, r0 + block)
+            src = self.rows(np.arange(r0 * f, r1 * f))["display"][:, : wr * f].astype(np.float32)
+            out[r0:r1] = np.round(src.reshape(r1 - r0, f, wr, f, 3).mean(axis=(1, 3))).astype(np.uint8)
+        return out, wr / w
+
+
+def _code_planes(codes: np.ndarray) -> dict:
+    """linear / clipped / black / display of 8- or 16-bit sRGB codes (module docstring)."""
+    full = np.iinfo(codes.dtype).max
+    peak = _channel_max(codes)
+    display = codes if full == 255 else ((codes.astype(np.uint32) * 255 + full // 2) // full).astype(np.uint8)
+    return {"linear": _decode_lut(8 * codes.itemsize)[codes], "clipped": peak == full,
+            "black": peak <= BLACK_CODE_8BIT * full // 255, "display": display}
 
 
 # --- encodings and orientation ------------------------------------------------------------------
@@ -222,17 +304,15 @@ def _focal(tags: dict, exif: dict, shape, sensor_scale: float, default_f35: floa
     return default_f35 / DIAGONAL_35MM_MM * diagonal, "default"
 
 
-# --- decoders: each returns (kind, display, linear, clipped, black, orientation, tags, sensor scale)
+# --- decoders: each returns (kind, codes, masks, orientation, tags, sensor scale) -----------------
 
 def _from_array(path, arr: np.ndarray, orientation: int):
-    """display, linear, clipped, black of an (H, W[, C]) uint8/uint16 (sRGB codes) or float (linear) array."""
+    """(codes, masks) of an (H, W[, C]) uint8/uint16 (sRGB codes) or float (linear) array: integer
+    codes are kept as they are (``Photo`` derives the rest), float gets its masks now."""
     arr = (arr[..., None] if arr.ndim == 2 else arr).astype(arr.dtype.newbyteorder("="), copy=False)
     arr = _orient(arr[..., :3] if arr.shape[-1] >= 3 else np.repeat(arr[..., :1], 3, axis=-1), orientation)
     if arr.dtype in (np.uint8, np.uint16):
-        full = np.iinfo(arr.dtype).max
-        peak = _channel_max(arr)
-        display = arr if full == 255 else ((arr.astype(np.uint32) * 255 + full // 2) // full).astype(np.uint8)
-        return display, _decode_lut(8 * arr.itemsize)[arr], peak == full, peak <= BLACK_CODE_8BIT * full // 255
+        return arr, None
     if arr.dtype.kind != "f":
         raise PhotoError(path, f"unsupported sample type {arr.dtype}")
     if not np.isfinite(arr).all():
@@ -240,7 +320,7 @@ def _from_array(path, arr: np.ndarray, orientation: int):
     linear = np.maximum(arr.astype(np.float32), 0.0)
     scale = np.float32(_preview_scale(linear, FLOAT_PREVIEW_P99))
     black = _channel_max(linear) * scale <= BLACK_LINEAR
-    return _srgb8(linear * scale), linear, np.zeros(linear.shape[:2], bool), black
+    return linear, (_srgb8(linear * scale), np.zeros(linear.shape[:2], bool), black)
 
 
 def _pillow_array(path, im) -> np.ndarray:
@@ -252,17 +332,41 @@ def _pillow_array(path, im) -> np.ndarray:
         return np.asarray(im, np.float32)
     if im.mode.startswith("I"):
         raise PhotoError(path, f"unsupported {im.format} pixel mode {im.mode} (32-bit integers)")
-    return np.asarray(im.convert("RGB"))  # 1, L, P, LA, RGBA, CMYK, YCbCr...: alpha dropped
+    # 1, L, P, LA, RGB, RGBA, CMYK, YCbCr...: RGB, alpha dropped. Copied out in strips: whole,
+    # numpy's copy goes through a bytes object of the same size (and convert() through a second
+    # Pillow buffer), tripling a large photo's footprint.
+    w, h = im.size
+    out = np.empty((h, w, 3), np.uint8)
+    step = max(1, (1 << 20) // max(1, w))
+    for y0 in range(0, h, step):
+        strip = im.crop((0, y0, w, min(h, y0 + step)))
+        out[y0 : y0 + step] = np.asarray(strip if strip.mode == "RGB" else strip.convert("RGB"))
+    return out
 
 
-def _decode_pillow(path: str):
+@contextlib.contextmanager
+def _no_pillow_bomb_guard():
+    """Pillow's decompression-bomb guard (a warning on stderr above 89 MP, an error above 179 MP)
+    is replaced by f2l's own limit (:func:`_check_pixels`), checked before decoding."""
+    from PIL import Image
+
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None
+    try:
+        yield
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def _decode_pillow(path: str, max_pixels: int | None = None):
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
+        with _no_pillow_bomb_guard(), Image.open(path) as im:
             kind = PILLOW_KINDS.get(im.format)
             if kind is None:
                 raise PhotoError(path, f"unsupported image format {im.format} (use RAW, JPEG, PNG or TIFF)")
+            _check_pixels(path, im.size[0], im.size[1], max_pixels)
             try:
                 im.load()  # decodes everything now, so truncation is detected here
             except (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error) as e:
@@ -279,27 +383,30 @@ def _decode_pillow(path: str):
     return (kind, *_from_array(path, arr, orientation), orientation, tags, _exif_size_scale(tags, arr.shape))
 
 
-def _decode_tiff(path: str):
+def _decode_tiff(path: str, max_pixels: int | None = None):
     """TIFF through tifffile (16-bit RGB, float); layouts or codecs it lacks go to Pillow."""
     try:
         import tifffile
     except ImportError:
-        return _decode_pillow(path)
+        return _decode_pillow(path, max_pixels)
     try:
         with tifffile.TiffFile(path) as tf:
             page = tf.pages[0]
+            _check_pixels(path, int(page.imagewidth), int(page.imagelength), max_pixels)
             ends = [offset + count for offset, count in zip(page.dataoffsets, page.databytecounts)]
             truncated = bool(ends) and max(ends) > os.path.getsize(path)
             usable = page.photometric in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB)
             arr = page.asarray() if usable and not truncated else None
             if arr is not None and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and arr.ndim == 3:
                 arr = np.moveaxis(arr, 0, -1)
+    except PhotoError:
+        raise
     except Exception:  # noqa: BLE001 - unknown codec, odd layout or corrupt: Pillow decides
-        return _decode_pillow(path)
+        return _decode_pillow(path, max_pixels)
     if truncated:
         raise PhotoError(path, "truncated TIFF (image data runs past the end of the file)")
     if arr is None or arr.ndim not in (2, 3) or f"{arr.dtype.kind}{arr.itemsize}" not in ("u1", "u2", "f2", "f4", "f8"):
-        return _decode_pillow(path)
+        return _decode_pillow(path, max_pixels)
     tags = _exifread_tags(path)
     orientation = _orientation(tags)
     return ("tiff", *_from_array(path, arr, orientation), orientation, tags, _exif_size_scale(tags, arr.shape))
@@ -346,12 +453,14 @@ def _raw_clipped(raw, half_size: bool) -> np.ndarray | None:
     return binary_dilation(np.repeat(np.repeat(blocks, 2, axis=0), 2, axis=1)[:h, :w], np.ones((3, 3), bool))
 
 
-def _decode_raw(path: str, half_size: bool):
+def _decode_raw(path: str, half_size: bool, max_pixels: int | None = None):
     import rawpy
 
     try:
         with rawpy.imread(path) as raw:
             orientation = LIBRAW_FLIP_TO_ORIENTATION.get(raw.sizes.flip, 1)
+            div = 2 if half_size else 1
+            _check_pixels(path, raw.sizes.width // div, raw.sizes.height // div, max_pixels)
             sensor_clipped = _raw_clipped(raw, half_size)
             rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True,
                                   half_size=half_size, output_color=rawpy.ColorSpace.sRGB, user_flip=None,
@@ -362,6 +471,8 @@ def _decode_raw(path: str, half_size: bool):
             raise PhotoError(path, f"not a supported photo: not JPEG/PNG/TIFF, and LibRaw says: {message}") from None
         state = "truncated or unreadable" if isinstance(e, rawpy.LibRawIOError) else "corrupt or undecodable"
         raise PhotoError(path, f"{state} RAW file (LibRaw {type(e).__name__}: {message})") from e
+    except PhotoError:
+        raise
     except (OSError, ValueError) as e:
         raise PhotoError(path, f"cannot decode RAW file ({e})") from e
     if rgb.ndim != 3 or rgb.shape[-1] != 3 or rgb.dtype != np.uint16:
@@ -374,7 +485,7 @@ def _decode_raw(path: str, half_size: bool):
     code_scale = np.float32(_preview_scale(linear, RAW_PREVIEW_P99) / 65535)
     display = _srgb8(np.arange(65536, dtype=np.float32) * code_scale)[rgb]  # per-code LUT: fast
     black = peak <= math.floor(BLACK_LINEAR * 65535)
-    return "raw", display, linear, clipped, black, orientation, _exifread_tags(path), 0.5 if half_size else 1.0
+    return "raw", linear, (display, clipped, black), orientation, _exifread_tags(path), 0.5 if half_size else 1.0
 
 
 # --- entry point --------------------------------------------------------------------------------
@@ -384,8 +495,28 @@ def _sniff(head: bytes) -> str | None:
     return next((kind for magic, kind in signatures.items() if head.startswith(magic)), None)
 
 
-def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float = DEFAULT_FOCAL_35MM_MM) -> Photo:
+def max_photo_pixels() -> int:
+    """The pixel limit: ``$F2L_MAX_PHOTO_PIXELS`` when set, else ``MAX_PIXELS``."""
+    value = os.environ.get("F2L_MAX_PHOTO_PIXELS")
+    try:
+        return int(float(value)) if value else MAX_PIXELS
+    except ValueError:
+        return MAX_PIXELS
+
+
+def _check_pixels(path: str, width: int, height: int, max_pixels: int | None) -> None:
+    limit = max_photo_pixels() if max_pixels is None else int(max_pixels)
+    if width * height > limit:
+        raise PhotoError(path, f"image is {width}x{height} = {width * height / 1e6:.0f} MP, above the "
+                               f"{limit / 1e6:.0f} MP limit (F2L_MAX_PHOTO_PIXELS); not decoded")
+
+
+def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float = DEFAULT_FOCAL_35MM_MM,
+               max_pixels: int | None = None) -> Photo:
     """Decode one photo (conventions: module docstring); bad input raises :class:`PhotoError`.
+
+    A photo of more than ``max_pixels`` (default :func:`max_photo_pixels`) is refused from its
+    header, before anything is decoded (RAW: the output size at ``raw_half_size``).
 
     JPEG/PNG content and ``.jpg``/``.png``/``.tif``/``.tiff`` files are decoded as images; anything
     else goes to LibRaw (any RAW it knows: CR2, CR3, NEF, ARW, DNG, RAF, ORF, RW2, PEF, SRW, ...).
@@ -408,18 +539,18 @@ def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float
         raise PhotoError(path, "zero-byte file")
     sniffed, suffix = _sniff(head), p.suffix.lower()
     if sniffed == "tiff" and suffix in (".tif", ".tiff"):
-        decoded = _decode_tiff(path)
+        decoded = _decode_tiff(path, max_pixels)
     elif sniffed in ("jpeg", "png") or suffix in RASTER_EXTENSIONS:
-        decoded = _decode_pillow(path)
+        decoded = _decode_pillow(path, max_pixels)
     else:
-        decoded = _decode_raw(path, raw_half_size)
-    kind, display, linear, clipped, black, orientation, tags, sensor_scale = decoded
-    height, width = linear.shape[:2]
+        decoded = _decode_raw(path, raw_half_size, max_pixels)
+    kind, codes, masks, orientation, tags, sensor_scale = decoded
+    height, width = codes.shape[:2]
     if height < MIN_SIZE or width < MIN_SIZE:
         raise PhotoError(path, f"image is {width}x{height} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed")
-    if not np.isfinite(linear).all():
+    if codes.dtype.kind == "f" and not np.isfinite(codes).all():
         raise PhotoError(path, "decoded image contains NaN or infinite values")
     exif = _exif_summary(tags)
-    focal_px, focal_source = _focal(tags, exif, linear.shape, sensor_scale, default_focal_35mm_mm)
-    return Photo(path=path, kind=kind, display=display, linear=linear, clipped=clipped, black=black,
-                 focal_px=float(focal_px), focal_source=focal_source, orientation=orientation, exif=exif)
+    focal_px, focal_source = _focal(tags, exif, codes.shape, sensor_scale, default_focal_35mm_mm)
+    return Photo(path=path, kind=kind, codes=codes, masks=masks, focal_px=float(focal_px),
+                 focal_source=focal_source, orientation=orientation, exif=exif)

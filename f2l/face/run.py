@@ -109,7 +109,7 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                    "rejected_json": "[]"}
             try:
                 if not path.is_file():
-                    raise PhotoError(f"{path}: no such file")
+                    raise PhotoError(path, "no such file")
                 row["sha256"] = sha = file_sha256(path)
                 photo = load_photo(path)
                 fits = fit_photo_faces(photo, landmarker, options)
