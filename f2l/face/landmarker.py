@@ -90,17 +90,23 @@ def _interpreter_class():
 def _native_stderr_to_debug_log():
     """Route what native code writes to file descriptor 2 while the block runs (LiteRT prints
     "INFO: Created TensorFlow Lite XNNPACK delegate for CPU." from C++, ignoring
-    TF_CPP_MIN_LOG_LEVEL) to this module's logger at DEBUG level instead of the terminal."""
+    TF_CPP_MIN_LOG_LEVEL) to this module's logger at DEBUG level (``f2l --debug-log``) instead of
+    the terminal. Lines that are not "INFO:" (warnings, errors) and everything written when the
+    block raises are also passed on to the terminal."""
     try:
         sys.stderr.flush()
         saved = os.dup(2)
     except (OSError, ValueError):  # no usable fd 2 (embedded interpreters): leave it alone
         yield
         return
+    failed = False
     with tempfile.TemporaryFile() as sink:
         os.dup2(sink.fileno(), 2)
         try:
             yield
+        except BaseException:
+            failed = True
+            raise
         finally:
             os.dup2(saved, 2)
             os.close(saved)
@@ -108,6 +114,8 @@ def _native_stderr_to_debug_log():
             for line in sink.read().decode("utf-8", "replace").splitlines():
                 if line.strip():
                     _log.debug("LiteRT: %s", line.strip())
+                    if failed or not line.startswith("INFO:"):
+                        print(line, file=sys.stderr)
 
 
 @lru_cache(maxsize=4)
