@@ -164,4 +164,6 @@ def test_process_pool_matches_serial(small_shards, tmp_path):
     b = {r["face_id"]: r for r in pq.read_table(tmp_path / "pooled" / "estimates.parquet").to_pylist()}
     assert a.keys() == b.keys()
     for fid in a:
-        np.testing.assert_allclose(a[fid]["params"], b[fid]["params"], rtol=1e-9, atol=1e-12)
+        # another process: equal to rounding as amplified by the sh9 fit (derived in test_ray_executor_matches_local)
+        np.testing.assert_allclose(a[fid]["params"], b[fid]["params"], rtol=1e-4,
+                                   atol=1e-4 * np.abs(a[fid]["params"]).max())

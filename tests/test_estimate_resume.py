@@ -60,8 +60,11 @@ def test_killed_run_resumes_from_its_parts(first_run, small_shards, tmp_path):
     assert resumed["skipped_done"] == 2 and resumed["ok"] == 2
     rows = _rows(killed)
     assert rows.keys() == full.keys()
-    for k in keys:
-        np.testing.assert_allclose(rows[k]["params"], full[k]["params"], rtol=1e-9, atol=1e-12)
+    for k in keys[:2]:  # the part's rows, read back as written
+        assert rows[k]["params"] == full[k]["params"]
+    for k in keys[2:]:  # refitted: equal to rounding as amplified by the fit (test_ray_executor_matches_local)
+        np.testing.assert_allclose(rows[k]["params"], full[k]["params"], rtol=1e-4,
+                                   atol=1e-4 * np.abs(full[k]["params"]).max())
     assert not (killed / PARTS_DIR).exists()
 
 
@@ -75,9 +78,10 @@ def test_ray_executor_matches_local(first_run, small_shards, tmp_path):
     rows = _rows(tmp_path / "ray")
     assert rows.keys() == local.keys()
     for k in local:
-        # The same convex sh9 problem in another process, whose BLAS may take other threads and
-        # kernels: IRLS stops ~1e-5 (relative) short of its fixed point and float32 Gram matrices
-        # leave ~1e-6 of noise (linear.solve_psi), so parameters agree to well within 1e-4.
+        # The same sh9 fit in another process, whose BLAS may take other threads and kernels: both
+        # run the same capped IRLS iterations (these faces stop at the caps, not at the 1e-6 rule), a
+        # contraction, so rounding moves theta as input noise does: +-1 ulp on every float32 input
+        # moves it by <= 6e-6 max|theta| (elementwise up to 1.2e-4 on small coefficients: hence atol).
         np.testing.assert_allclose(rows[k]["params"], local[k]["params"], rtol=1e-4,
                                    atol=1e-4 * np.abs(local[k]["params"]).max())
         assert (tmp_path / "ray" / rows[k]["probe_path"]).is_file()

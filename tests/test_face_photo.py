@@ -55,7 +55,7 @@ def test_png_8bit_round_trip(tmp_path):
     assert p.display.dtype == np.uint8 and np.array_equal(p.display, codes)
     np.testing.assert_allclose(p.linear, inverse_srgb(codes), rtol=1e-6, atol=1e-9)
     assert p.linear[1, 0, 0] == 1.0 and p.linear[0, 0, 0] == 0.0
-    assert p.linear[2, 0, 0] == pytest.approx(0.2158605, abs=1e-7)
+    assert p.linear[2, 0, 0] == pytest.approx(0.2158605, abs=1e-7)  # sRGB^-1(128 / 255) by the formula, float32
     assert p.linear[0, 1, 1] == pytest.approx(1 / 255 / 12.92, rel=1e-6)
     np.testing.assert_array_equal(p.clipped, (codes == 255).any(axis=-1))
     np.testing.assert_array_equal(p.black, (codes <= 2).all(axis=-1))

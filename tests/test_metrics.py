@@ -88,7 +88,8 @@ def test_reference_c_sun_angle_30_degrees():
     gt, sg = sunny_sky(FULL, 20.0, 30.0)
     est, se = sunny_sky(FULL, 50.0, 30.0)
     m = probe_metrics(est, gt, FULL)
-    assert m["Sun-ang (°)"] == pytest.approx(29.785, abs=0.01)  # documented value
+    # documented value (29.7878): no fit, cap edges >= 1e-5 away in cos, so rounding moves it by ~1e-13
+    assert m["Sun-ang (°)"] == pytest.approx(29.785, abs=0.01)
     assert abs(m["Sun-ang (°)"] - 30.0) < 1.0
     exact = probe_metrics(est, gt, FULL, est_sun_dir=se, gt_sun_dir=sg)["Sun-ang (°)"]
     assert exact == pytest.approx(30.0, abs=1e-9)

@@ -71,6 +71,7 @@ def test_nll_matches_torch_and_scipy(gmm):
     gmm.nll_torch(xt).sum().backward()
     assert torch.all(torch.isfinite(xt.grad))
     assert torch.autograd.gradcheck(gmm.nll_torch, (torch.tensor(x[1:4], dtype=torch.float64, requires_grad=True),))
+    # float32: ~10 ulp (4e-7) for these well-conditioned covariances, inputs' own rounding included
     np.testing.assert_allclose(gmm.nll_torch(torch.tensor(x, dtype=torch.float32)).numpy(), nll, rtol=1e-4)
 
 
@@ -273,6 +274,7 @@ def test_build_prior_from_records(fitted):
                         n_components=2)
     assert prior.num_components == 2 and prior.corpus["probes"] == 301 and prior.corpus["fitted"] == 300
     f = model.prior_features(params)
+    # an identity of every EM M-step (sum_k r_nk = 1), so it holds wherever EM stopped, to rounding
     np.testing.assert_allclose(prior.weights @ prior.means, f.mean(axis=0), atol=1e-6)
     # the two kappas are the two clusters
     assert sorted(np.round(np.exp(prior.means[:, 2]))) == pytest.approx([1000.0, 8000.0], rel=1e-3)
