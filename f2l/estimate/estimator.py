@@ -68,10 +68,11 @@ class EstimatorConfig:
     ground_albedo_init: float = 0.2
     albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
     # IRLS iterations for linear models, before and after the albedo split: caps; each round stops
-    # once psi moves by less than `irls_tolerance` (relative). With the floor below, 40 + 12 reach
-    # the fixed point to ~1e-6 (synthetic faces, `tests/test_estimate_linear.py`); the former
-    # (18, 6) stopped 1e-3 to 1e-2 short of it, where the CPU's rounding decided the last digits.
-    irls_iters: tuple[int, int] = (40, 12)
+    # once its estimated distance to the fixed point is below `irls_tolerance` (relative, see
+    # linear.solve_psi). On the 12 demo faces 20 of 24 SH fits stop by that rule (40-154
+    # iterations), the rest at the caps; (40, 12) stopped 5e-6 to 3.5e-2 (of max|theta|) short of
+    # the fixed point, the former (18, 6) further still. §5.1 metrics move by <= 0.3% between them.
+    irls_iters: tuple[int, int] = (150, 50)
     irls_tolerance: float = 1e-6
     # the first `irls_warm_iters` of the first round run on every `irls_warm_stride`-th pixel:
     # that half-size problem's optimum is a start that 4 full iterations polish (psi within
