@@ -147,6 +147,13 @@ def _resample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray, k: int, order: 
     return out[..., 0] if image.ndim == 2 else out
 
 
+def _photo_window(view: geometry.WorkingView, hw: tuple[int, int]):
+    """The photo rows (sorted, unique) and columns [c0, c1) that a view's footprints read."""
+    xs, ys, _ = _footprint_samples(view)
+    (ry1, _), (rx1, _) = _taps(ys, hw[0], 1), _taps(xs, hw[1], 1)
+    return np.unique(ry1), int(rx1.min()), int(rx1.max()) + 1
+
+
 def _outside_fraction(xy: np.ndarray, hw: tuple[int, int]) -> float:
     h, w = hw
     out = (xy[:, 0] < 0) | (xy[:, 0] > w) | (xy[:, 1] < 0) | (xy[:, 1] > h)
@@ -200,9 +207,9 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
 
     xs, ys, k = _footprint_samples(view)
     # only the photo's rows and columns that the footprints touch are read (a large photo is
-    # never converted whole: Photo.rows)
-    (ry1, _), (rx1, _) = _taps(ys, hw[0], 1), _taps(xs, hw[1], 1)
-    rows, c0, c1 = np.unique(ry1), int(rx1.min()), int(rx1.max()) + 1
+    # never converted whole: Photo.rows; a streamed one reads just this window at full
+    # resolution: StreamedPhoto.rows)
+    rows, c0, c1 = _photo_window(view, hw)
     part = photo.rows(rows, slice(c0, c1))
     local_y = np.searchsorted(rows, np.clip(np.floor(ys - 0.5), 0, hw[0] - 1).astype(np.int64))
     ys_l = ys - rows[local_y] + local_y  # footprints in the (rows x [c0, c1)) sub-image
@@ -250,13 +257,27 @@ def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
     from f2l.face.photo import DETECTION_MAX_SIDE
 
     t0 = time.perf_counter()
-    image, scale = photo.detection_image(DETECTION_MAX_SIDE)  # a large photo: a reduced copy
+    # a large photo: a reduced copy, where position p is offset + p / scale in the photo
+    image, scale, offset = photo.detection_image(DETECTION_MAX_SIDE)
     found = landmarker(image, max_faces=options.max_faces)
     del image
     landmarks_s = (time.perf_counter() - t0) / max(1, len(found))
+    found_points = []
+    for lms in found:
+        points = lms.points
+        if scale != 1.0 or offset != (0.0, 0.0):
+            points = points / scale  # x, y and z scale alike
+            points[:, :2] += np.asarray(offset, np.float64)
+        found_points.append(points)
+    if len(found) > 1 and hasattr(photo, "prefetch"):  # a streamed photo: every face's window in one pass
+        boxes = []
+        for points in found_points:
+            rows, c0, c1 = _photo_window(geometry.working_view(np.asarray(points, np.float64), options.resolution,
+                                                               options.margin), photo.shape)
+            boxes.append((rows[0], rows[-1] + 1, c0, c1))
+        photo.prefetch(boxes)
     out = []
-    for i, lms in enumerate(found):
-        points = lms.points / scale if scale != 1.0 else lms.points  # x, y and z scale alike
+    for i, (lms, points) in enumerate(zip(found, found_points)):
         fit = fit_face(photo, points, i, options, lms.detection.score, lms.presence)
         if isinstance(fit, FaceFit):
             fit.timings["landmarks_s"] = round(landmarks_s, 4)

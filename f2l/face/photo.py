@@ -22,12 +22,25 @@ or the RAW's flip applied, row 0 at the top):
   else a 35 mm-equivalent ``DEFAULT_FOCAL_35MM_MM`` (50 mm: diagonal field of view ≈ 46.8°).
   Orientation swaps width and height, not the diagonal, so it never changes ``focal_px``.
 
-Large photos: a photo above ``MAX_PIXELS`` (250 MP; ``$F2L_MAX_PHOTO_PIXELS``) is refused from its
-header, before decoding. Within it, a photo costs its source codes (8/16-bit: kept as they are;
-``linear``, ``clipped``, ``black`` are derived on first use) plus Pillow's buffer while decoding;
-face fitting detects on a reduced copy (``DETECTION_MAX_SIDE``) and reads only the rows and
-columns its footprints sample (:meth:`Photo.rows`). A 12,000 × 12,000 PNG without a face: 1.1 GB
-peak RSS for `f2l fit-faces` (3.2 GB before); a 100 MP 16-bit TIFF with a face: 1.1 GB (3.4 GB).
+Large photos: a photo above ``MAX_PIXELS`` (250 MP; ``$F2L_MAX_PHOTO_PIXELS`` or ``max_pixels=``)
+is refused from its header, before decoding, with a :class:`PhotoError` naming the file and both
+sizes (Pillow's own decompression-bomb guard is off: this limit replaces it). A photo whose long
+side exceeds ``DETECTION_MAX_SIDE`` is *streamed* (:class:`StreamedPhoto`): it is never held
+whole. Faces are detected on a reduced copy (JPEG: libjpeg's DCT scaling through ``Image.draft``;
+PNG: Pillow's own decoder run row block by row block into an anonymous mapping whose finished rows
+are box-reduced and released; TIFF: strips or tiles one band at a time, or direct row reads when
+uncompressed), and face fitting reads the full-resolution rows and columns around each face only
+(:meth:`StreamedPhoto.rows`; JPEG/PNG decode again up to the face's last row). Memory is then about
+the reduced copy plus the face's window, whatever the photo's size: `f2l fit-faces` on a
+12,000 × 12,000 PNG without a face peaks at 0.23 GiB RSS (3.1 GiB when decoded whole as float,
+1.1 GiB as whole 8-bit codes; measurements in ``docs/large_photos.md``). Streamed are 8-bit JPEG (RGB, grey),
+non-interlaced PNG (RGB, RGBA, grey, grey+alpha, palette, 16-bit) and 8/16-bit integer TIFF, on
+Linux (``madvise``); anything else (CMYK JPEG, interlaced PNG, float TIFF, RAW, other platforms)
+is decoded whole as below, within the same pixel limit. A streamed photo's whole-image arrays
+(``linear``, ``display``, ...) are still there for callers that need them (chart detection): the
+first use decodes the photo whole. Photos within ``DETECTION_MAX_SIDE`` are decoded whole.
+Within it, a whole photo costs its source codes (8/16-bit: kept as they are; ``linear``,
+``clipped``, ``black`` are derived on first use) plus Pillow's buffer while decoding.
 
 EXIF comes from Pillow for JPEG/PNG and from ``exifread`` for RAW and TIFF. Pillow cannot decode
 16-bit-RGB or float TIFFs, so TIFFs go through ``tifffile`` when it is installed; Pillow reads
@@ -41,12 +54,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import mmap
 import os
 import struct
+import sys
 import zlib
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -148,24 +164,24 @@ class Photo:
     def black(self) -> np.ndarray:  # (H, W) bool
         return self.masks[2] if self.masks is not None else self._full["black"]
 
-    def detection_image(self, max_side: int) -> tuple[np.ndarray, float]:
-        """(display reduced so its long side is <= ``max_side``, its scale = reduced / full px).
+    def detection_image(self, max_side: int) -> tuple[np.ndarray, float, tuple[float, float]]:
+        """(display reduced so its long side is <= ``max_side``, scale, offset): a reduced pixel
+        position p maps to ``offset + p / scale`` in the photo (x, y; here offset (0, 0), scale
+        1 / f).
 
-        An integer box reduction (the mean of f x f display pixels), made from blocks of rows, so
-        a large photo is never held in a second full-size form. Photos within the limit come
-        back as ``display`` itself, scale 1."""
+        An integer box reduction (the mean of f x f display pixels from the top-left corner),
+        made from blocks of rows, so a large photo is never held in a second full-size form.
+        Photos within the limit come back as ``display`` itself, scale 1."""
         h, w = self.shape
-        f = max(1, math.ceil(max(h, w) / max(1, int(max_side))))
+        f = _box_factor(h, w, max_side)
         if f == 1:
-            return self.display, 1.0
-        hr, wr = h // f, w // f
-        out = np.empty((hr, wr, 3), np.uint8)
-        block = max(1, (1 << 22) // max(1, w * f))  # reduced rows per step (~4M source pixels)
-        for r0 in range(0, hr, block):
-            r1 = min(hr, r0 + block)
-            src = self.rows(np.arange(r0 * f, r1 * f))["display"][:, : wr * f].astype(np.float32)
-            out[r0:r1] = np.round(src.reshape(r1 - r0, f, wr, f, 3).mean(axis=(1, 3))).astype(np.uint8)
-        return out, wr / w
+            return self.display, 1.0, (0.0, 0.0)
+        reducer = _BoxReducer(f, (0, 0), (h // f, w // f))
+        block = max(f, ((1 << 22) // max(1, w * f)) * f)  # whole blocks of rows (~4M source pixels)
+        for r0 in range(0, (h // f) * f, block):
+            rows = slice(r0, min(h, r0 + block))
+            reducer(r0, self.codes[rows] if self.masks is None else self.masks[0][rows])
+        return reducer.out, 1.0 / f, (0.0, 0.0)
 
 
 def _code_planes(codes: np.ndarray) -> dict:
@@ -358,7 +374,7 @@ def _no_pillow_bomb_guard():
         Image.MAX_IMAGE_PIXELS = saved
 
 
-def _decode_pillow(path: str, max_pixels: int | None = None):
+def _decode_pillow(path: str, max_pixels: int | None = None, stream: bool | None = False):
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -367,6 +383,10 @@ def _decode_pillow(path: str, max_pixels: int | None = None):
             if kind is None:
                 raise PhotoError(path, f"unsupported image format {im.format} (use RAW, JPEG, PNG or TIFF)")
             _check_pixels(path, im.size[0], im.size[1], max_pixels)
+            if kind in ("jpeg", "png") and _stream_wanted(stream, *im.size) and _CAN_STREAM_PILLOW:
+                # JPEG keeps its EXIF before the pixels; a PNG's is read by the streamed pass
+                return _Streamed(kind, _PillowSource(path, kind), (im.size[1], im.size[0]),
+                                 _pillow_tags(im) if kind == "jpeg" else None)
             try:
                 im.load()  # decodes everything now, so truncation is detected here
             except (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error) as e:
@@ -383,7 +403,7 @@ def _decode_pillow(path: str, max_pixels: int | None = None):
     return (kind, *_from_array(path, arr, orientation), orientation, tags, _exif_size_scale(tags, arr.shape))
 
 
-def _decode_tiff(path: str, max_pixels: int | None = None):
+def _decode_tiff(path: str, max_pixels: int | None = None, stream: bool | None = False):
     """TIFF through tifffile (16-bit RGB, float); layouts or codecs it lacks go to Pillow."""
     try:
         import tifffile
@@ -392,11 +412,15 @@ def _decode_tiff(path: str, max_pixels: int | None = None):
     try:
         with tifffile.TiffFile(path) as tf:
             page = tf.pages[0]
-            _check_pixels(path, int(page.imagewidth), int(page.imagelength), max_pixels)
+            width, height = int(page.imagewidth), int(page.imagelength)
+            _check_pixels(path, width, height, max_pixels)
             ends = [offset + count for offset, count in zip(page.dataoffsets, page.databytecounts)]
             truncated = bool(ends) and max(ends) > os.path.getsize(path)
             usable = page.photometric in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB)
-            arr = page.asarray() if usable and not truncated else None
+            streamable = (usable and not truncated and _stream_wanted(stream, width, height)
+                          and np.dtype(page.dtype).str[1:] in ("u1", "u2") and page.imagedepth == 1
+                          and page.fillorder == 1 and not page.is_subsampled)
+            arr = page.asarray() if usable and not truncated and not streamable else None
             if arr is not None and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and arr.ndim == 3:
                 arr = np.moveaxis(arr, 0, -1)
     except PhotoError:
@@ -405,6 +429,8 @@ def _decode_tiff(path: str, max_pixels: int | None = None):
         return _decode_pillow(path, max_pixels)
     if truncated:
         raise PhotoError(path, "truncated TIFF (image data runs past the end of the file)")
+    if streamable:
+        return _Streamed("tiff", _TiffSource(path), (height, width), _exifread_tags(path))
     if arr is None or arr.ndim not in (2, 3) or f"{arr.dtype.kind}{arr.itemsize}" not in ("u1", "u2", "f2", "f4", "f8"):
         return _decode_pillow(path, max_pixels)
     tags = _exifread_tags(path)
@@ -488,11 +514,463 @@ def _decode_raw(path: str, half_size: bool, max_pixels: int | None = None):
     return "raw", linear, (display, clipped, black), orientation, _exifread_tags(path), 0.5 if half_size else 1.0
 
 
+# --- streamed decoding of large photos (module docstring) ----------------------------------------
+
+# JPEG/PNG input is handed to Pillow's decoder in pieces of this size; between pieces the rows it
+# has finished are consumed and their memory released. Deflate expands at most 1,032-fold (JPEG
+# less), ~1,400-fold into Pillow's 4-byte pixels: the rows in flight stay within ~25 MB.
+STREAM_CHUNK_BYTES = 16384
+# Pillow modes streamed, with their bytes per pixel in Pillow's image memory.
+_STREAM_MODES = {"RGB": 4, "RGBA": 4, "LA": 4, "L": 1, "P": 1, "I;16": 2}
+_STREAM_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, IndexError, struct.error, zlib.error)
+# Streaming JPEG/PNG needs anonymous private mappings whose pages can be given back (madvise).
+_CAN_STREAM_PILLOW = (sys.platform.startswith("linux") and hasattr(mmap, "MAP_ANONYMOUS")
+                      and hasattr(mmap, "MADV_DONTNEED") and hasattr(mmap.mmap, "madvise"))
+
+
+class _StreamUnavailable(Exception):
+    """This photo cannot be streamed here: decode it whole."""
+
+
+class _StopDecode(Exception):
+    """The rows that were asked for have been read."""
+
+
+def _box_factor(h: int, w: int, max_side: int) -> int:
+    return max(1, math.ceil(max(h, w) / max(1, int(max_side))))
+
+
+def _display_codes(codes: np.ndarray) -> np.ndarray:
+    """uint8 display codes of 8- or 16-bit codes (as :func:`_code_planes`)."""
+    if codes.dtype == np.uint8:
+        return codes
+    return ((codes.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+
+
+class _BoxReducer:
+    """Box reduction of rows fed in order, in blocks of any size: ``out[i, j]`` is the rounded mean
+    of the display codes of rows ``r + i f .. r + (i + 1) f`` and columns ``c + j f ..`` (start
+    (r, c)); the sum is exact and divided in float32, as numpy's mean of those integers."""
+
+    def __init__(self, f: int, start: tuple[int, int], shape: tuple[int, int]):
+        self.f, (self.r_start, self.c_start) = f, start
+        self.out = np.zeros((shape[0], shape[1], 3), np.uint8)
+        self._rows = np.zeros((shape[1] * f, 3), np.uint32)  # the current block's column sums
+
+    def __call__(self, r0: int, codes: np.ndarray) -> None:
+        f, (hr, wr) = self.f, self.out.shape[:2]
+        lo, hi = max(r0, self.r_start), min(r0 + len(codes), self.r_start + hr * f)
+        if hi <= lo:
+            return
+        part = _display_codes(codes[lo - r0 : hi - r0, self.c_start : self.c_start + wr * f])
+        for k, r in enumerate(range(lo, hi)):  # row by row and column by column: numpy's fast paths
+            self._rows += part[k]
+            if (r - self.r_start) % f == f - 1:
+                groups = self._rows.reshape(wr, f, 3)
+                total = groups[:, 0].copy()
+                for j in range(1, f):
+                    total += groups[:, j]
+                i = (r - self.r_start) // f
+                self.out[i] = np.round(total.astype(np.float32) / np.float32(f * f)).astype(np.uint8)
+                self._rows[:] = 0
+
+
+class _Window:
+    """Collects rows ``r0:r1``, columns ``c0:c1`` of rows fed in order."""
+
+    def __init__(self, r0: int, r1: int, c0: int, c1: int):
+        self.r0, self.r1, self.c0, self.c1 = r0, r1, c0, c1
+        self.out: np.ndarray | None = None
+
+    def __call__(self, start: int, codes: np.ndarray) -> None:
+        lo, hi = max(start, self.r0), min(start + len(codes), self.r1)
+        if hi <= lo:
+            return
+        if self.out is None:
+            self.out = np.zeros((self.r1 - self.r0, self.c1 - self.c0, 3), codes.dtype)
+        self.out[lo - self.r0 : hi - self.r0] = codes[lo - start : hi - start, self.c0 : self.c1]
+
+
+class _ReduceTo:
+    """A consumer box-reducing a stored image to a long side <= ``max_side`` (:class:`_BoxReducer`
+    from the top-left corner); its size (and a decoder's own scale) is told by ``begin``."""
+
+    def __init__(self, max_side: int):
+        self.max_side = int(max_side)
+
+    def begin(self, width: int, height: int, scale: int = 1) -> None:
+        self.scale, self.f = scale, _box_factor(height, width, self.max_side)
+        self.reducer = _BoxReducer(self.f, (0, 0), (height // self.f, width // self.f))
+
+    def __call__(self, r0: int, codes: np.ndarray) -> None:
+        self.reducer(r0, codes)
+
+    def result(self) -> _Reduced:
+        return _Reduced(self.reducer.out, self.scale * self.f, self.max_side)
+
+
+@dataclass
+class _Reduced:
+    """A reduced copy in the stored frame: pixel j covers stored pixels [j f, (j + 1) f)."""
+
+    image: np.ndarray  # (m_rows, m_cols, 3) uint8
+    factor: int
+    max_side: int
+
+
+def _oriented_axes(orientation: int) -> tuple[tuple[int, bool], tuple[int, bool]]:
+    """For the oriented rows and columns: (the stored axis they run along, reversed or not)."""
+    probe = _orient(np.arange(6).reshape(2, 3), orientation)
+    origin, down, right = (divmod(int(v), 3) for v in (probe[0, 0], probe[1, 0], probe[0, 1]))
+    row_axis = 0 if down[0] != origin[0] else 1
+    return ((row_axis, down[row_axis] < origin[row_axis]),
+            (1 - row_axis, right[1 - row_axis] < origin[1 - row_axis]))
+
+
+def _palette_lut(im) -> np.ndarray:
+    """(256, 3) uint8 RGB of a P image's palette, read without loading the image."""
+    rawmode, data = im.palette.getdata()
+    if rawmode not in ("RGB", "RGBA", "RGBX"):
+        raise _StreamUnavailable(f"palette mode {rawmode}")
+    pal = np.frombuffer(data, np.uint8)
+    pal = pal[: len(pal) // len(rawmode) * len(rawmode)].reshape(-1, len(rawmode))[:256, :3]
+    lut = np.zeros((256, 3), np.uint8)
+    lut[: len(pal)] = pal
+    return lut
+
+
+def _pillow_rows_rgb(raw: np.ndarray, mode: str, width: int, lut) -> np.ndarray:
+    """(n, W, 3) codes of rows of Pillow's image memory (a view for the 4-byte modes)."""
+    n = len(raw)
+    if _STREAM_MODES[mode] == 4:  # RGB(X), RGBA and LA (stored L, L, L, A): the first three bytes
+        return raw.reshape(n, width, 4)[..., :3]
+    if mode == "P":
+        return lut[raw]
+    grey = raw.view("<u2").astype(np.uint16) if mode == "I;16" else raw
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def _pillow_scan(path: str, consume, stop: int | None = None, draft: int | None = None,
+                 want_tags: bool = False) -> dict | None:
+    """Decode a JPEG or PNG with Pillow's own decoder, row block by row block.
+
+    The decoder writes into an anonymous private mapping of the image's size, fed
+    ``STREAM_CHUNK_BYTES`` of input at a time; between pieces, the rows it has finished are
+    passed to ``consume(first_row, codes)`` ((n, W, 3) uint8/uint16, stored frame, valid during
+    the call) and their pages given back, so only the rows in flight are ever resident. A row is
+    finished once a later one has been written (rows are written whole and in order): the RGB
+    unpacker sets every pixel's fourth byte to 255 on fresh (zero) pages, and other modes get a
+    pseudo-random 4-byte guard at the end of each row first (data equal to the guard only delays
+    a row). Stops after row ``stop``. ``draft`` (JPEG): decode at 1/draft scale (libjpeg's DCT
+    scaling). ``consume.begin(width, height, scale)`` is called first when it exists. Returns the
+    Pillow tags (``want_tags``: read after decoding; a PNG may keep its EXIF after the pixels)."""
+    from PIL import Image
+
+    with _no_pillow_bomb_guard(), Image.open(path) as im:
+        if draft:
+            im.draft(im.mode, (im.size[0] // draft, im.size[1] // draft))
+        mode, (w, h) = im.mode, im.size
+        if (mode not in _STREAM_MODES or len(im.tile) != 1 or im.info.get("interlace")
+                or getattr(im, "is_animated", False) or not _CAN_STREAM_PILLOW):
+            raise _StreamUnavailable(f"{im.format} {mode}")
+        stride = w * _STREAM_MODES[mode]
+        try:
+            lut = _palette_lut(im) if mode == "P" else None
+            flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_NORESERVE", 0)
+            mm = mmap.mmap(-1, stride * h, flags=flags)  # address space; pages only as written
+            im.im = Image.core.map_buffer(mm, (w, h), "raw", 0, (mode, stride, 1))
+        except (AttributeError, TypeError, ValueError, OSError) as e:
+            raise _StreamUnavailable(str(e)) from e
+        if hasattr(consume, "begin"):
+            consume.begin(w, h, im.decoderconfig[0] if draft and im.decoderconfig else 1)
+        raw = np.frombuffer(mm, np.uint8).reshape(h, stride)
+        tail = raw[:, stride - 4 :]
+        if mode == "RGB":
+            guard = None
+        else:
+            guard = np.random.default_rng(h).integers(0, 256, size=(h, 4), dtype=np.uint8)
+            tail[:] = guard
+        done = 0
+
+        def written(r: int) -> bool:
+            return bool(tail[r, 3]) if guard is None else bool((tail[r] != guard[r]).any())
+
+        def frontier() -> int:  # first row not known to be finished
+            if done >= h or not written(done):
+                return done
+            lo, step = done, 1
+            while True:
+                hi = lo + step
+                if hi >= h:
+                    hi = h
+                    break
+                if not written(hi):
+                    break
+                lo, step = hi, step * 2
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                lo, hi = (mid, hi) if written(mid) else (lo, mid)
+            return lo  # the last written row may still be in the decoder's hands: not yet
+
+        def flush(final: bool = False) -> None:
+            nonlocal done
+            end = h if final else frontier()
+            if end > done:
+                consume(done, _pillow_rows_rgb(raw[done:end], mode, w, lut))
+                a = done * stride // mmap.PAGESIZE * mmap.PAGESIZE
+                b = len(mm) if final else end * stride // mmap.PAGESIZE * mmap.PAGESIZE
+                if b > a:
+                    mm.madvise(mmap.MADV_DONTNEED, a, b - a)
+                done = end
+            if stop is not None and done >= stop:
+                raise _StopDecode
+
+        read = im.load_read if hasattr(im, "load_read") else im.fp.read
+
+        def load_read(n: int) -> bytes:
+            flush()
+            return read(n)
+
+        im.load_read = load_read
+        im.decodermaxblock = STREAM_CHUNK_BYTES
+        tags = None
+        try:
+            try:
+                im.load()
+                flush(final=True)
+            except _StopDecode:
+                pass
+            except _STREAM_DECODE_ERRORS as e:
+                raise PhotoError(path, f"truncated or corrupt {im.format} ({e})") from e
+            if want_tags:
+                tags = _pillow_tags(im)
+        finally:
+            del raw, tail
+            im.close()  # releases Pillow's view of the mapping
+            with contextlib.suppress(BufferError):
+                mm.close()
+    return tags
+
+
+class _PillowSource:
+    """A streamed JPEG or PNG (:func:`_pillow_scan`)."""
+
+    def __init__(self, path: str, kind: str):
+        self.path, self.kind = path, kind
+
+    def reduce(self, max_side: int) -> tuple[_Reduced, dict | None]:
+        """The reduced copy (JPEG: libjpeg's DCT scaling by the power of two <= 8 that brings the
+        long side nearest to ``max_side``, then a box; PNG: a box over every row) and the tags."""
+        draft = None
+        if self.kind == "jpeg":
+            from PIL import Image
+
+            with _no_pillow_bomb_guard(), Image.open(self.path) as im:
+                f = _box_factor(im.size[1], im.size[0], max_side)
+            draft = next((s for s in (2, 4) if s >= f), 8) if f > 1 else None
+        reducer = _ReduceTo(max_side)
+        tags = _pillow_scan(self.path, reducer, draft=draft, want_tags=True)
+        return reducer.result(), tags
+
+    def scan(self, consume, start: int = 0, stop: int | None = None) -> None:
+        _pillow_scan(self.path, consume, stop=stop)
+
+
+class _TiffSource:
+    """A streamed 8/16-bit integer TIFF: rows read directly when the data is uncompressed and
+    contiguous, otherwise one band of strips or tiles (all planes) decoded at a time."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def reduce(self, max_side: int) -> tuple[_Reduced, dict | None]:
+        import tifffile
+
+        with tifffile.TiffFile(self.path) as tf:
+            page = tf.pages[0]
+            width, height = int(page.imagewidth), int(page.imagelength)
+        reducer = _ReduceTo(max_side)
+        reducer.begin(width, height)
+        self.scan(reducer)
+        return reducer.result(), None
+
+    def scan(self, consume, start: int = 0, stop: int | None = None) -> None:
+        import tifffile
+
+        with tifffile.TiffFile(self.path) as tf:
+            page, fh = tf.pages[0], tf.filehandle
+            h, w, spp = int(page.imagelength), int(page.imagewidth), int(page.samplesperpixel)
+            stop = h if stop is None else min(int(stop), h)
+            dtype = np.dtype(page.dtype).newbyteorder(tf.byteorder)
+            if page.is_contiguous and (page.planarconfig == 1 or spp == 1):
+                row_bytes = w * spp * dtype.itemsize
+                step = max(1, (1 << 24) // row_bytes)
+                for r0 in range(start, stop, step):
+                    n = min(step, stop - r0)
+                    fh.seek(page.dataoffsets[0] + r0 * row_bytes)
+                    data = fh.read(n * row_bytes)
+                    if len(data) < n * row_bytes:
+                        raise PhotoError(self.path, "truncated TIFF (image data runs past the end of the file)")
+                    consume(r0, _tiff_rgb(np.frombuffer(data, dtype).reshape(n, w, spp)))
+                return
+            band = int(page.tilelength if page.is_tiled else min(page.rowsperstrip, h))
+            planes = spp if page.planarconfig == 2 and spp > 1 else 1
+            bands, across = math.ceil(h / band), (math.ceil(w / page.tilewidth) if page.is_tiled else 1)
+            if len(page.dataoffsets) != planes * bands * across:
+                raise _StreamUnavailable("unexpected segment layout")
+            args = {"_fullsize": bool(page.is_tiled)}
+            if page.compression in (6, 7, 34892, 33007):  # JPEG
+                args.update(jpegtables=page.jpegtables, jpegheader=page.jpegheader)
+            for b in range(start // band, math.ceil(stop / band)):
+                r0 = b * band
+                n = min(band, h - r0)
+                rows = np.zeros((n, w, spp), dtype.newbyteorder("="))
+                for p in range(planes):
+                    for t in range(across):
+                        index = (p * bands + b) * across + t
+                        if not page.databytecounts[index]:
+                            continue
+                        fh.seek(page.dataoffsets[index])
+                        segment, at, _ = page.decode(fh.read(page.databytecounts[index]), index, **args)
+                        if segment is None:
+                            continue
+                        c0 = int(at[3])
+                        seg = segment[0, :n, : w - c0]
+                        rows[:, c0 : c0 + seg.shape[1], p : p + seg.shape[2]] = seg
+                consume(r0, _tiff_rgb(rows))
+
+
+def _tiff_rgb(arr: np.ndarray) -> np.ndarray:
+    """(n, W, 3) native-order codes of (n, W, S) TIFF samples, as :func:`_from_array` takes them."""
+    arr = arr.astype(arr.dtype.newbyteorder("="), copy=False)
+    return arr[..., :3] if arr.shape[-1] >= 3 else np.repeat(arr[..., :1], 3, axis=-1)
+
+
+class StreamedPhoto:
+    """A large photo read on demand (module docstring): what face fitting uses of :class:`Photo`
+    (``shape``, :meth:`detection_image`, :meth:`rows`, the camera fields) without holding the
+    photo; its whole-image arrays decode it whole on first use."""
+
+    def __init__(self, path: str, kind: str, source, stored_shape: tuple[int, int], orientation: int,
+                 reduced: _Reduced, whole):
+        self.path, self.kind, self.orientation = path, kind, orientation
+        self._source, self._stored_shape, self._reduced, self._whole_loader = source, stored_shape, reduced, whole
+        self._windows: dict = {}
+        self.focal_px, self.focal_source, self.exif = 0.0, "default", {}
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        (row_axis, _), _ = _oriented_axes(self.orientation)
+        h, w = self._stored_shape
+        return (h, w) if row_axis == 0 else (w, h)
+
+    def detection_image(self, max_side: int) -> tuple[np.ndarray, float, tuple[float, float]]:
+        """As :meth:`Photo.detection_image`; the reduction runs in the stored frame from its
+        top-left corner, so with a flipped orientation (and for JPEG's DCT scaling, whose last
+        block may be partial) the offset is not zero."""
+        if self._reduced.max_side != int(max_side):
+            self._reduced = self._source.reduce(max_side)[0]
+        red = self._reduced
+        offset = []
+        for axis, flipped in _oriented_axes(self.orientation):
+            n, m = self._stored_shape[axis], red.image.shape[axis]
+            offset.append(float(n - red.factor * m) if flipped else 0.0)
+        return _orient(red.image, self.orientation), 1.0 / red.factor, (offset[1], offset[0])
+
+    def rows(self, index: np.ndarray, cols: slice = slice(None)) -> dict:
+        """As :meth:`Photo.rows`: reads the full-resolution window spanning the rows and columns
+        asked for (one pass over the file, unless :meth:`prefetch` read it)."""
+        index = np.asarray(index, np.int64)
+        h, w = self.shape
+        col_index = np.arange(w)[cols]
+        if len(index) == 0 or len(col_index) == 0:
+            return _code_planes(np.zeros((len(index), len(col_index), 3), np.uint8))
+        box = (int(index.min()), int(index.max()) + 1, int(col_index.min()), int(col_index.max()) + 1)
+        if box not in self._windows:
+            self.prefetch([box])
+        return _code_planes(self._windows[box][index - box[0]][:, col_index - box[2]])
+
+    def prefetch(self, boxes) -> None:
+        """Read the full-resolution windows ``(r0, r1, c0, c1)`` (oriented rows and columns) in one
+        pass over the file, replacing those read before."""
+        self._windows = {}
+        boxes = list(dict.fromkeys(tuple(int(v) for v in box) for box in boxes))
+        if not boxes:
+            return
+        windows = [_Window(*self._stored_box(*box)) for box in boxes]
+
+        def consume(start: int, codes: np.ndarray) -> None:
+            for window in windows:
+                window(start, codes)
+
+        self._source.scan(consume, start=min(w.r0 for w in windows), stop=max(w.r1 for w in windows))
+        for box, window in zip(boxes, windows):
+            if window.out is None:
+                raise PhotoError(self.path, f"rows {window.r0}..{window.r1} could not be read")
+            self._windows[box] = _orient(window.out, self.orientation)
+
+    def _stored_box(self, r0: int, r1: int, c0: int, c1: int) -> tuple[int, int, int, int]:
+        """The stored-frame rows and columns of an oriented window."""
+        stored = [(0, 0), (0, 0)]
+        for (axis, flipped), (a, b) in zip(_oriented_axes(self.orientation), ((r0, r1), (c0, c1))):
+            n = self._stored_shape[axis]
+            stored[axis] = (n - b, n - a) if flipped else (a, b)
+        return (*stored[0], *stored[1])
+
+    @cached_property
+    def whole(self) -> Photo:
+        """The photo decoded whole (:class:`Photo`), for callers that need every pixel."""
+        return self._whole_loader()
+
+    codes = property(lambda self: self.whole.codes)
+    masks = property(lambda self: self.whole.masks)
+    linear = property(lambda self: self.whole.linear)
+    display = property(lambda self: self.whole.display)
+    clipped = property(lambda self: self.whole.clipped)
+    black = property(lambda self: self.whole.black)
+
+
 # --- entry point --------------------------------------------------------------------------------
 
 def _sniff(head: bytes) -> str | None:
     signatures = {b"\xff\xd8\xff": "jpeg", b"\x89PNG\r\n\x1a\n": "png", b"II*\x00": "tiff", b"MM\x00*": "tiff"}
     return next((kind for magic, kind in signatures.items() if head.startswith(magic)), None)
+
+
+class _Streamed(NamedTuple):
+    """A photo to stream: its source, stored (H, W) and tags (None: the reduced pass reads them)."""
+
+    kind: str
+    source: object
+    stored_shape: tuple[int, int]
+    tags: dict | None
+
+
+def _stream_wanted(stream: bool | None, width: int, height: int) -> bool:
+    return bool(stream) or (stream is None and max(width, height) > DETECTION_MAX_SIDE)
+
+
+def _load_streamed(path: str, streamed: _Streamed, default_focal_35mm_mm: float, whole) -> StreamedPhoto | None:
+    """A :class:`StreamedPhoto` with its reduced copy made now (which also checks that the data
+    decodes); None when the photo cannot be streamed after all (then it is decoded whole)."""
+    h, w = streamed.stored_shape
+    if h < MIN_SIZE or w < MIN_SIZE:
+        raise PhotoError(path, f"image is {w}x{h} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed")
+    try:
+        reduced, tags = streamed.source.reduce(DETECTION_MAX_SIDE)
+    except PhotoError:
+        raise
+    except Exception:  # noqa: BLE001 - a layout, codec or platform the streamed path lacks
+        return None
+    tags = streamed.tags if streamed.tags is not None else (tags or {})
+    orientation = _orientation(tags)
+    photo = StreamedPhoto(path, streamed.kind, streamed.source, (h, w), orientation, reduced, whole)
+    exif = _exif_summary(tags)
+    photo.exif = exif
+    focal_px, photo.focal_source = _focal(tags, exif, photo.shape, _exif_size_scale(tags, photo.shape),
+                                          default_focal_35mm_mm)
+    photo.focal_px = float(focal_px)
+    return photo
 
 
 def max_photo_pixels() -> int:
@@ -512,11 +990,15 @@ def _check_pixels(path: str, width: int, height: int, max_pixels: int | None) ->
 
 
 def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float = DEFAULT_FOCAL_35MM_MM,
-               max_pixels: int | None = None) -> Photo:
+               max_pixels: int | None = None, stream: bool | None = None) -> Photo | StreamedPhoto:
     """Decode one photo (conventions: module docstring); bad input raises :class:`PhotoError`.
 
     A photo of more than ``max_pixels`` (default :func:`max_photo_pixels`) is refused from its
     header, before anything is decoded (RAW: the output size at ``raw_half_size``).
+
+    ``stream``: None streams JPEG/PNG/TIFF photos whose long side exceeds ``DETECTION_MAX_SIDE``
+    (a :class:`StreamedPhoto`, its reduced copy decoded now); True streams any photo that can be,
+    False none.
 
     JPEG/PNG content and ``.jpg``/``.png``/``.tif``/``.tiff`` files are decoded as images; anything
     else goes to LibRaw (any RAW it knows: CR2, CR3, NEF, ARW, DNG, RAF, ORF, RW2, PEF, SRW, ...).
@@ -539,11 +1021,23 @@ def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float
         raise PhotoError(path, "zero-byte file")
     sniffed, suffix = _sniff(head), p.suffix.lower()
     if sniffed == "tiff" and suffix in (".tif", ".tiff"):
-        decoded = _decode_tiff(path, max_pixels)
+        decode = _decode_tiff
     elif sniffed in ("jpeg", "png") or suffix in RASTER_EXTENSIONS:
-        decoded = _decode_pillow(path, max_pixels)
+        decode = _decode_pillow
     else:
+        decode = None
         decoded = _decode_raw(path, raw_half_size, max_pixels)
+    if decode is not None:
+        decoded = decode(path, max_pixels, stream)
+        if isinstance(decoded, _Streamed):
+            def whole() -> Photo:
+                return load_photo(path, default_focal_35mm_mm=default_focal_35mm_mm, max_pixels=max_pixels,
+                                  stream=False)
+
+            photo = _load_streamed(path, decoded, default_focal_35mm_mm, whole)
+            if photo is not None:
+                return photo
+            decoded = decode(path, max_pixels, False)
     kind, codes, masks, orientation, tags, sensor_scale = decoded
     height, width = codes.shape[:2]
     if height < MIN_SIZE or width < MIN_SIZE:

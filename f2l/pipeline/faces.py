@@ -28,7 +28,7 @@ from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import relative_message
 
 CALIBRATE_VERSION = 1
-FIT_VERSION = 1
+FIT_VERSION = 2  # 2: large photos detected on a reduced copy, fitted from full-resolution windows
 
 
 def _rounded(stats: dict) -> dict:
