@@ -157,6 +157,7 @@ def estimate(
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
     faces already estimated with the same model, version and settings."""
     from f2l.estimate.runner import run_estimates
+    from f2l.estimate.ray_executor import ExecutorUnavailable
     from f2l.models.registry import ModelNotFoundError
 
     missing = [str(s) for s in shards if not Path(s).exists()]
@@ -172,6 +173,8 @@ def estimate(
         )
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))
+    except ExecutorUnavailable as exc:
+        _fail(str(exc))
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["ok"] == 0 and summary["total"] > 0 and not summary["skipped_done"]:
         raise typer.Exit(code=1)

@@ -151,3 +151,16 @@ def test_capture_bench_child_needs_no_extra():
                 if not owners.get(module, set()) & declared:
                     problems.append(module)
     assert not problems, f"bench-capture's child imports undeclared modules: {problems}"
+
+
+def test_ray_executor_without_the_extra_fails_cleanly(small_shards, tmp_path):
+    """A plain install has no Ray: `--executor ray` names the extra to install, without a traceback."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['ray'] = None; sys.argv = ['f2l'] + sys.argv[1:]; "
+            "from f2l.cli import main; main()")
+    proc = subprocess.run([sys.executable, "-c", code, "estimate", str(small_shards), "-m", "sh9", "--out",
+                           str(tmp_path / "est"), "--executor", "ray", "--json"], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "pip install 'f2l[ray]'" in proc.stderr and "Traceback" not in proc.stderr

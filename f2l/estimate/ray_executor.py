@@ -54,13 +54,17 @@ class RecordEstimator:
         return rows_to_table(rows, "estimates")
 
 
+class ExecutorUnavailable(RuntimeError):
+    """The chosen executor's optional dependency is not installed."""
+
+
 def ray_estimate_rows(shards, models: list[str], out_dir: str, cfg, done: set, *,
                       address: str | None = None, workers: int = 2) -> Iterator[dict]:
     """Estimate rows (dicts of the ``estimates`` schema) computed on Ray, as they arrive."""
     try:
         import ray
     except ImportError as exc:  # pragma: no cover - depends on the installed extras
-        raise RuntimeError("--executor ray needs Ray: pip install 'f2l[ray]'") from exc
+        raise ExecutorUnavailable("--executor ray needs Ray: pip install 'f2l[ray]'") from exc
     from f2l.io.shards import shard_files
 
     files = [str(p) for p in shard_files(shards)]
