@@ -137,6 +137,43 @@ def synth(
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
 
 
+@app.command("render-faces")
+def render_faces_cmd(
+    out: Path = typer.Option(..., "--out", help="Output folder (photos/, png/, probes/, truth/, meta/)."),
+    n: int = typer.Option(8, "--n", help="Number of cases."),
+    seed: int = typer.Option(0, help="Random seed: case i of a seed is the same person, pose, camera and sky in every variant."),
+    start: int = typer.Option(0, help="First case index (render a set in parts)."),
+    image_px: int = typer.Option(384, help="Photo size in pixels (square)."),
+    spp: int = typer.Option(64, help="Path-tracing samples per pixel."),
+    max_depth: int = typer.Option(6, help="Path length: 6 includes interreflection; 2 is direct light only."),
+    specular: bool = typer.Option(True, "--specular/--no-specular", help="Skin with a specular lobe (principled BSDF) or Lambertian."),
+    head: str = typer.Option("anny", help="anny (random Anny adults) or canonical (MediaPipe's canonical face, closed: an ablation)."),
+    clipping: bool = typer.Option(True, "--clipping/--no-clipping", help="Expose so the brightest few % of the face clip, or keep the face below 0.9."),
+    sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies."""
+    from f2l.render import RenderExtraMissing
+    from f2l.render.dataset import RenderOptions, render_faces
+    from f2l.render.heads import require_anny
+    from f2l.render.scene import mitsuba
+
+    try:
+        mitsuba()
+        require_anny()
+    except RenderExtraMissing as exc:
+        _fail(str(exc))
+    try:
+        options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
+                                clipping=clipping, sunsky_fraction=sunsky_fraction)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if summary["cases"] and len(summary["errors"]) == summary["cases"]:
+        raise typer.Exit(code=1)
+
+
 @app.command()
 def estimate(
     shards: list[Path] = typer.Argument(..., help="Shard directories or .parquet files."),

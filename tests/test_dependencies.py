@@ -22,7 +22,10 @@ OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional"}
 
 # Optional by design: imported only inside a function, in a try that turns the ImportError into
 # an error naming the extra. Module -> the [project.optional-dependencies] extra declaring it.
-OPTIONAL_IMPORTS = {"ray": "ray"}  # f2l estimate --executor ray (f2l/estimate/ray_executor.py)
+OPTIONAL_IMPORTS = {"ray": "ray",  # f2l estimate --executor ray (f2l/estimate/ray_executor.py)
+                    # f2l render-faces (f2l/render/): the path tracer, the heads, and anny's kernel
+                    # library (imported to quiet its start-up banner)
+                    "mitsuba": "render", "anny": "render", "warp": "render"}
 
 # Declared dependencies that no file imports by name, and why.
 NOT_IMPORTED: dict[str, str] = {}

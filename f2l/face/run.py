@@ -67,7 +67,8 @@ def _overlay(out: Path, fid: str, fit: FaceFit, options: FitOptions) -> str:
     return rel
 
 
-def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None) -> str | None:
+def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None, grid) -> str | None:
+    """Attach ``gt_dir/<photo stem>.exr``, area-resampled to the record's lighting grid."""
     if gt_dir is None:
         return None
     src = gt_dir / f"{photo_path.stem}.exr"
@@ -76,7 +77,12 @@ def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None) -> str
     from f2l.io.exr import read_exr
     from f2l.io.shards import write_side_probe
 
-    return write_side_probe(out, fid, np.asarray(read_exr(src), dtype=np.float32))
+    probe = np.asarray(read_exr(src), dtype=np.float32)
+    if probe.shape[:2] != grid.shape:  # e.g. a renderer's 128 x 256 truth for a 64 x 128 fit
+        from f2l.lighting.resample import resample
+
+        probe = resample(probe, grid.height, grid.width)
+    return write_side_probe(out, fid, probe)
 
 
 def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool = True,
@@ -124,7 +130,7 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                     crop_rel = write_side_photo(out, fid, fit.crop_display)
                     record = face_record(fit, photo, fid, options, source_path=str(path),
                                          photo_rel=crop_rel,
-                                         gt_probe_rel=_gt_probe(out, fid, path, gt_dir))
+                                         gt_probe_rel=_gt_probe(out, fid, path, gt_dir, options.grid))
                     if overlays:
                         record.meta["overlay_path"] = _overlay(out, fid, fit, options)
                     records.append((record, sum(fit.timings.values())))

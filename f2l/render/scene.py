@@ -1,0 +1,219 @@
+"""Mitsuba 3 scenes for the realistic face renderer: a head under an HDR map or a Hosek–Wilkie sky.
+
+Everything is in f2l's camera frame (``docs/conventions.md``: +Y up, the camera at +Z looking
+along −Z, cm). Two kinds of lighting:
+
+- :class:`MapLighting`: a lat-long radiance map in f2l's layout (any size). Mitsuba's ``envmap``
+  puts the map's u = 0 at f2l's u = 0.5 (measured: ``tests/test_render.py`` checks a one-texel
+  light and a rendered sun-lit face), so the map is handed over rolled by half its width.
+- :class:`SunSkyLighting`: Mitsuba's ``sunsky`` emitter (Hosek–Wilkie 2012 sky and sun disc of
+  0.5358°), whose own frame is +Z up (``to_world`` turns it to +Y up; its ``sun_direction`` is
+  then in world coordinates), over a Lambertian ground disk 1.6 m below the eyes.
+
+:func:`ground_truth_probe` gives the probe a case is judged against, on f2l's grid: the map's
+area average, or for the sky the texel means of the sky (4 × 4 samples per texel), the sun's
+integrated power put into its texel, and the lit ground's radiance ρ_g E_h / π below the horizon.
+
+The integrator is Mitsuba's ``path`` (max depth 6: skin–skin, skin–shoulder and ground bounces);
+``max_depth=2`` is direct light only (the "no interreflection" ablation). An ``aov`` pass of depth
+gives the head's image mask.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from f2l.render.heads import PART_CAVITY, PART_EYE, PART_HAIR, PART_SHIRT, PART_SKIN, Head
+
+__all__ = ["MapLighting", "SunSkyLighting", "RenderSettings", "ground_truth_probe", "render_head"]
+
+GROUND_DEPTH_CM = 160.0
+SUN_APERTURE_DEG = 0.5358  # Mitsuba's sunsky default: the sun's angular diameter
+
+
+def mitsuba():
+    """The ``mitsuba`` module in its ``scalar_rgb`` variant (CPU, no LLVM or CUDA needed)."""
+    try:
+        import mitsuba as mi
+    except ImportError as exc:
+        from f2l.render import RenderExtraMissing
+
+        raise RenderExtraMissing(exc) from exc
+
+    if mi.variant() is None or not mi.variant().startswith("scalar_rgb"):
+        mi.set_variant("scalar_rgb")
+    return mi
+
+
+@dataclass
+class MapLighting:
+    """A lat-long radiance map (H, W, 3) in f2l's layout, linear Rec.709."""
+
+    radiance: np.ndarray
+    name: str = "map"
+
+    def emitters(self, mi) -> dict:
+        rolled = np.roll(np.asarray(self.radiance, dtype=np.float32), self.radiance.shape[1] // 2, axis=1)
+        return {"sky": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(rolled))}}
+
+
+@dataclass
+class SunSkyLighting:
+    """Hosek–Wilkie sky + sun (Mitsuba ``sunsky``), sun direction in f2l's frame, over a ground."""
+
+    sun_direction: np.ndarray
+    turbidity: float
+    ground_albedo: float
+    sun_scale: float = 1.0
+    sky_scale: float = 1.0
+
+    def _emitter(self, mi, sun_scale=None, sky_scale=None) -> dict:
+        return {"type": "sunsky", "sun_direction": [float(c) for c in self.sun_direction],
+                "turbidity": float(self.turbidity), "albedo": float(self.ground_albedo),
+                "sun_scale": float(self.sun_scale if sun_scale is None else sun_scale),
+                "sky_scale": float(self.sky_scale if sky_scale is None else sky_scale),
+                "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90)}
+
+    def emitters(self, mi) -> dict:
+        return {"sky": self._emitter(mi),
+                "ground": {"type": "disk",
+                           "to_world": mi.ScalarTransform4f().translate([0, -GROUND_DEPTH_CM, 0])
+                           .rotate([1, 0, 0], -90).scale(2.0e5),
+                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(self.ground_albedo)}}}}
+
+
+def _eval(emitter, mi, directions: np.ndarray) -> np.ndarray:
+    si = mi.SurfaceInteraction3f()
+    out = np.empty((len(directions), 3))
+    for i, d in enumerate(directions):
+        si.wi = mi.ScalarVector3f(-d[0], -d[1], -d[2])
+        out[i] = emitter.eval(si)
+    return out
+
+
+def _sun_power(lighting: SunSkyLighting, mi, n: int = 48) -> np.ndarray:
+    """∫ L_sun dω (RGB) over the sun's disc, on an n × n tangent-plane grid 1.3 × its diameter wide."""
+    emitter = mi.load_dict(lighting._emitter(mi, sky_scale=0.0))
+    d = np.asarray(lighting.sun_direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    a = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(d, a)
+    half = np.radians(SUN_APERTURE_DEG) * 0.65
+    t = (np.arange(n) + 0.5) / n * 2 * half - half
+    ta, tb = np.meshgrid(t, t, indexing="ij")
+    dirs = d + ta[..., None] * a + tb[..., None] * b
+    norm = np.linalg.norm(dirs, axis=-1, keepdims=True)
+    dirs = (dirs / norm).reshape(-1, 3)
+    d_omega = ((2 * half / n) ** 2 / norm[..., 0] ** 3).reshape(-1)  # gnomonic projection's Jacobian
+    return (_eval(emitter, mi, dirs) * d_omega[:, None]).sum(axis=0)
+
+
+def ground_truth_probe(lighting, grid, supersample: int = 4) -> np.ndarray:
+    """The lighting as a probe (H, W, 3) float64 on ``grid`` (module docstring)."""
+    from f2l.lighting.resample import resample
+
+    if isinstance(lighting, MapLighting):
+        return resample(np.asarray(lighting.radiance, dtype=np.float64), grid.height, grid.width)
+    mi = mitsuba()
+    sky = mi.load_dict(lighting._emitter(mi, sun_scale=0.0))
+    h, w, s = grid.height, grid.width, supersample
+    fine_v = (np.arange(h // 2 * s) + 0.5) / (h * s)  # sky rows only
+    fine_u = (np.arange(w * s) + 0.5) / (w * s)
+    uu, vv = np.meshgrid(fine_u, fine_v)
+    theta, phi = np.pi * (2 * uu - 1), np.pi * vv
+    dirs = np.stack([np.sin(phi) * np.sin(theta), np.cos(phi), -np.sin(phi) * np.cos(theta)], -1).reshape(-1, 3)
+    # texel means weighted by each sample's solid angle (sin φ)
+    values = _eval(sky, mi, dirs).reshape(h // 2, s, w, s, 3)
+    weight = np.sin(phi).reshape(h // 2, s, w, s, 1)
+    probe = np.zeros((h, w, 3))
+    probe[: h // 2] = (values * weight).sum(axis=(1, 3)) / weight.sum(axis=(1, 3))
+    d_omega = grid.solid_angles
+    if lighting.sun_scale > 0:
+        power = _sun_power(lighting, mi) * lighting.sun_scale
+        row, col = grid.direction_to_texel(np.asarray(lighting.sun_direction, dtype=np.float64))
+        probe[int(row), int(col)] += power / d_omega[int(row), int(col)]
+    up = grid.directions[..., 1]
+    irradiance = (probe[: h // 2] * (np.clip(up[: h // 2], 0, None) * d_omega[: h // 2])[..., None]).sum(axis=(0, 1))
+    probe[h // 2:] = lighting.ground_albedo * irradiance / np.pi
+    return probe
+
+
+@dataclass
+class RenderSettings:
+    """Camera, sampling and material switches of one render."""
+
+    width_px: int = 384
+    height_px: int = 384
+    fov_x_deg: float = 40.0
+    camera_distance_cm: float = 60.0
+    spp: int = 64
+    max_depth: int = 6
+    specular: bool = True
+    skin_roughness: float = 0.5
+    skin_specular: float = 0.45
+    seed: int = 0
+
+
+def _write_ply(path: Path, head: Head, faces_mask: np.ndarray) -> None:
+    faces = head.faces[faces_mask]
+    used = np.unique(faces)
+    remap = np.full(len(head.vertices), -1)
+    remap[used] = np.arange(len(used))
+    vert = np.concatenate([head.vertices[used], head.normals[used], head.albedo[used]], axis=1).astype("<f4")
+    face = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face["n"], face["i"] = 3, remap[faces]
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(used)}\n"
+              + "".join(f"property float {p}\n" for p in ("x", "y", "z", "nx", "ny", "nz", "r", "g", "b"))
+              + f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(vert.tobytes())
+        fh.write(face.tobytes())
+
+
+def _bsdf(kind: str, settings: RenderSettings) -> dict:
+    colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    if not settings.specular or kind == "diffuse":
+        return {"type": "diffuse", "reflectance": colour}
+    roughness, specular = {"skin": (settings.skin_roughness, settings.skin_specular), "hair": (0.6, 0.5),
+                           "eye": (0.08, 0.5)}[kind]
+    return {"type": "principled", "base_color": colour, "roughness": float(roughness),
+            "specular": float(specular)}
+
+
+def render_head(head: Head, lighting, settings: RenderSettings) -> dict:
+    """Path-trace ``head`` (already posed) under ``lighting``.
+
+    Returns ``{"image": (H, W, 3) float32 linear radiance, "depth_cm": (H, W) float32 (0 where
+    the ray leaves the scene), "focal_px": float}``.
+    """
+    mi = mitsuba()
+    parts = {"skin": np.isin(head.part, [PART_SKIN]), "hair": head.part == PART_HAIR,
+             "eye": head.part == PART_EYE, "diffuse": np.isin(head.part, [PART_SHIRT, PART_CAVITY])}
+    scene: dict = {
+        "type": "scene",
+        "integrator": {"type": "aov", "aovs": "dd:depth",
+                       "image": {"type": "path", "max_depth": int(settings.max_depth)}},
+        "sensor": {"type": "perspective", "fov": float(settings.fov_x_deg), "fov_axis": "x",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, settings.camera_distance_cm],
+                                                             target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": int(settings.width_px), "height": int(settings.height_px),
+                            "pixel_format": "rgba", "rfilter": {"type": "gaussian"}},
+                   "sampler": {"type": "independent", "sample_count": int(settings.spp),
+                               "seed": int(settings.seed) % (2**31)}},
+    }
+    scene.update(lighting.emitters(mi))
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind, mask in parts.items():
+            if mask.any():
+                path = Path(tmp) / f"{kind}.ply"
+                _write_ply(path, head, mask)
+                scene[f"head_{kind}"] = {"type": "ply", "filename": str(path), "bsdf": _bsdf(kind, settings)}
+        raw = np.array(mi.render(mi.load_dict(scene)), dtype=np.float32)
+    focal_px = settings.width_px / (2.0 * np.tan(np.radians(settings.fov_x_deg) / 2.0))
+    return {"image": np.clip(raw[..., :3], 0.0, None), "depth_cm": raw[..., -1], "focal_px": float(focal_px)}

@@ -1,0 +1,170 @@
+"""The realistic face renderer (f2l render-faces): map conventions, ground truth, a tiny case."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mitsuba")
+pytest.importorskip("anny")
+
+from f2l.lighting.grid import LatLongGrid, direction_from_angles  # noqa: E402
+from f2l.render.hdri import OUTDOOR_MAPS, decode_js_module, load_map, repair_ringing  # noqa: E402
+from f2l.render.scene import (MapLighting, RenderSettings, SunSkyLighting, ground_truth_probe,  # noqa: E402
+                              mitsuba, render_head)
+
+
+def _eval_emitter(emitter, direction):
+    mi = mitsuba()
+    si = mi.SurfaceInteraction3f()
+    si.wi = mi.ScalarVector3f(*(-np.asarray(direction, dtype=float)))
+    return np.array(emitter.eval(si))
+
+
+def test_shipped_maps_are_outdoor_daylight_in_f2l_layout():
+    grid = LatLongGrid(256, 512)
+    for name in OUTDOOR_MAPS:
+        radiance = load_map(name)
+        assert radiance.shape == (256, 512, 3) and radiance.dtype == np.float32
+        assert np.isfinite(radiance).all() and radiance.min() >= 0.0
+        energy = (radiance.mean(axis=-1) * grid.solid_angles)
+        assert energy[:128].sum() > energy[128:].sum(), f"{name}: the sky (row 0 = zenith) must be the upper half"
+
+
+def test_repair_ringing_keeps_energy_and_removes_negatives():
+    grid = LatLongGrid(64, 128)
+    img = np.full((64, 128, 3), 2.0)
+    img[20, 40] = 5000.0  # a sun with a ringing cross of negative and positive lobes
+    img[19, 40] = img[21, 40] = img[20, 39] = img[20, 41] = -400.0
+    img[18, 40] = img[22, 40] = 150.0
+    fixed = repair_ringing(img)
+    d_omega = grid.solid_angles[..., None]
+    assert fixed.min() >= 0.0
+    np.testing.assert_allclose((fixed * d_omega).sum((0, 1)), (img * d_omega).sum((0, 1)), rtol=1e-5)
+    assert fixed[20, 40, 0] == fixed[..., 0].max() and fixed[0, 0, 0] == 2.0
+
+
+def test_decode_js_module_reads_the_data_url():
+    payload = b"\x76\x2f\x31\x01 exr bytes"
+    import base64
+
+    text = "export default 'data:application/exr;base64," + base64.b64encode(payload).decode() + "'\n"
+    assert decode_js_module(text) == payload
+    with pytest.raises(ValueError):
+        decode_js_module("export default 42")
+
+
+def test_envmap_orientation_matches_f2l_layout():
+    """Mitsuba's envmap, fed by MapLighting, is bright exactly in the f2l direction of the lit texel."""
+    mi = mitsuba()
+    grid = LatLongGrid(64, 128)
+    radiance = np.full((64, 128, 3), 0.01, np.float32)
+    row, col = 20, 90
+    radiance[row, col] = 100.0
+    emitter = mi.load_dict(MapLighting(radiance).emitters(mi)["sky"])
+    lit = grid.directions[row, col]
+    assert _eval_emitter(emitter, lit)[0] > 50.0
+    for other in [(row, 128 - 1 - col), (row, (col + 64) % 128), (63 - row, col)]:  # mirror, half turn, flip
+        assert _eval_emitter(emitter, grid.directions[other])[0] < 1.0
+
+
+def test_sunsky_ground_truth_has_the_sun_in_its_texel_and_a_lit_ground():
+    grid = LatLongGrid(128, 256)
+    sun = direction_from_angles(np.radians(30.0), np.radians(70.0))
+    lighting = SunSkyLighting(sun, turbidity=3.0, ground_albedo=0.2)
+    probe = ground_truth_probe(lighting, grid)
+    assert np.isfinite(probe).all() and probe.min() >= 0.0
+    row, col = grid.direction_to_texel(sun)
+    lum = probe.mean(-1)
+    assert (lum.argmax() // 256, lum.argmax() % 256) == (int(row), int(col))
+    d_omega = grid.solid_angles
+    # the sun carries most of a clear sky's energy; its power matches the emitter's disc radiance
+    sun_power = probe[row, col].mean() * d_omega[row, col]
+    sky_power = (lum[:64] * d_omega[:64]).sum() - sun_power
+    assert sun_power > sky_power
+    disc = np.pi * np.radians(0.5358 / 2) ** 2
+    centre = _eval_emitter(mitsuba().load_dict(lighting._emitter(mitsuba(), sky_scale=0.0)), sun).mean()
+    assert 0.6 * centre * disc < sun_power < 1.05 * centre * disc  # limb darkening: below the centre's
+    # ground: rho_g E_h / pi, uniform
+    up = np.clip(grid.directions[..., 1], 0, None)
+    e_h = (probe[:64] * (up[:64] * d_omega[:64])[..., None]).sum((0, 1))
+    np.testing.assert_allclose(probe[100, 17], 0.2 * e_h / np.pi, rtol=1e-9)
+
+
+def _ball():
+    import trimesh
+
+    from f2l.render.heads import PART_SKIN, Head
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=8.0)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    return Head(v, f, np.full((len(v), 3), 0.5), np.full(len(f), PART_SKIN), v / 8.0)
+
+
+@pytest.mark.parametrize("kind", ["map", "sunsky"])
+def test_a_sun_at_plus_x_lights_the_image_right_side(kind):
+    """The convention check the issue asks for: +X is the camera's right in both light sources."""
+    sun = direction_from_angles(np.radians(20.0), np.radians(90.0))  # +X, low
+    if kind == "map":
+        grid = LatLongGrid(64, 128)
+        radiance = np.full((64, 128, 3), 0.05, np.float32)
+        row, col = grid.direction_to_texel(sun)
+        radiance[row, col] = 2000.0
+        lighting = MapLighting(radiance)
+    else:
+        lighting = SunSkyLighting(sun, turbidity=3.0, ground_albedo=0.2)
+    out = render_head(_ball(), lighting, RenderSettings(width_px=48, height_px=48, fov_x_deg=40.0,
+                                                        camera_distance_cm=40.0, spp=8, specular=False))
+    image, depth = out["image"].mean(-1), out["depth_cm"]
+    on_ball = (depth > 0) & (depth < 60)
+    right, left = image[:, 24:][on_ball[:, 24:]].mean(), image[:, :24][on_ball[:, :24]].mean()
+    assert right > 2.0 * left
+
+
+def test_render_faces_tiny_case_resumes_and_ablations_keep_the_case(tmp_path):
+    """One small case through the CLI: files, meta and EXIF; a rerun skips it; a variant re-renders
+    the same drawn person, pose, camera and sky."""
+    from PIL import Image
+
+    from f2l.io.exr import read_exr
+    from f2l.render.dataset import RenderOptions, draw_case
+
+    out = tmp_path / "pbr"
+    cmd = [sys.executable, "-m", "f2l.cli", "render-faces", "--out", str(out), "--n", "1", "--seed", "3",
+           "--image-px", "96", "--spp", "4", "--json"]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    summary = json.loads(first.stdout.strip().splitlines()[-1])
+    assert summary["ok"] == 1 and not summary["errors"]
+    fid = "pbr-s3-00000"
+    meta = json.loads((out / "meta" / f"{fid}.json").read_text())
+    assert meta["head"]["source"] == "anny" and meta["face_id"] == fid
+    probe = read_exr(out / "probes" / f"{fid}.exr")
+    assert probe.shape == (128, 256, 3) and np.isfinite(probe).all() and probe.min() >= 0
+    photo = Image.open(out / "photos" / f"{fid}.jpg")
+    assert photo.size == (96, 96)
+    exif = photo.getexif().get_ifd(0x8769)
+    focal_mm, per_mm = float(exif[0x920A]), float(exif[0xA20E])
+    assert focal_mm * per_mm == pytest.approx(meta["focal_px"], rel=1e-3)
+    png = np.asarray(Image.open(out / "png" / f"{fid}.png"))
+    assert png.shape == (96, 96, 3) and png.dtype == np.uint8
+    assert 0.0 < meta["face_clipped_fraction"] < 0.5
+    np.testing.assert_allclose(np.load(out / "truth" / f"{fid}.npz")["normals"][0].astype(float) ** 2 @ np.ones(3),
+                               1.0, rtol=1e-3)
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert json.loads(again.stdout.strip().splitlines()[-1])["skipped_existing"] == 1
+    base = draw_case(3, 0, RenderOptions())
+    for variant in (RenderOptions(specular=False), RenderOptions(max_depth=2), RenderOptions(head="canonical"),
+                    RenderOptions(clipping=False)):
+        assert draw_case(3, 0, variant) == base
+
+
+def test_canonical_head_ablation_renders(tmp_path):
+    from f2l.render.dataset import RenderOptions, draw_case, render_case
+
+    options = RenderOptions(image_px=64, spp=2, head="canonical", clipping=False)
+    out = render_case(draw_case(5, 1, options), options)
+    assert out["meta"]["head"]["source"] == "mediapipe-canonical"
+    assert out["photo"].shape == (64, 64, 3) and out["meta"]["face_clipped_fraction"] == 0.0
