@@ -174,6 +174,62 @@ def render_faces_cmd(
         raise typer.Exit(code=1)
 
 
+@app.command("twin-geometry")
+def twin_geometry_cmd(
+    fitted: Path = typer.Argument(..., help="Shards written by `f2l fit-faces` from `f2l render-faces` photos."),
+    render: Path = typer.Option(..., "--render", help="The `f2l render-faces` folder the photos came from."),
+    out: Path = typer.Option(..., "--out", help="Output shard directory for the true-geometry twins."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Swap fitted face geometry for the renderer's true mesh (same pixels and observations)."""
+    from f2l.render.evaluate import write_true_geometry_twins
+
+    summary = write_true_geometry_twins(fitted, render, out)
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if not summary["twins"]:
+        _fail("no fitted record matched a rendered case (photo stem = case id)")
+
+
+@app.command("eval-real")
+def eval_real_cmd(
+    render: Path = typer.Argument(..., help="The `f2l render-faces` folder (meta/, probes/)."),
+    est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
+    out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
+) -> None:
+    """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
+    from f2l.render.evaluate import evaluate_real, write_report
+
+    runs = {}
+    for item in est:
+        label, _, path = item.rpartition("=") if "=" in item else ("", "", item)
+        runs[label or "fitted"] = Path(path)
+    for label, path in runs.items():
+        if not (path / "estimates.parquet").is_file():
+            _fail(f"{path}: no estimates.parquet (run `f2l estimate` first)")
+    rows = evaluate_real(render, runs)
+    if not rows:
+        _fail(f"{render}: no rendered case found (meta/*.json)")
+    summary = write_report(rows, out)
+    typer.echo((out / "eval_real.md").read_text())
+    typer.echo(json.dumps(summary))
+
+
+@app.command("eval-real-ablations")
+def eval_real_ablations_cmd(
+    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (eval_real_rows.csv, ablations/*/)."),
+    n: int = typer.Option(32, "--n", help="Compare the first N cases (those the ablations re-rendered)."),
+) -> None:
+    """How much of each model's error each ablation (no specular, direct light only, canonical head, no clipping) removes."""
+    from f2l.io.atomic import write_text_atomic
+    from f2l.render.evaluate import ablation_table
+
+    if not (eval_dir / "eval_real_rows.csv").is_file():
+        _fail(f"{eval_dir}: no eval_real_rows.csv (run `make eval-real` first)")
+    table = ablation_table(eval_dir, n)
+    write_text_atomic(eval_dir / "ablations.md", table + "\n")
+    typer.echo(table)
+
+
 @app.command()
 def estimate(
     shards: list[Path] = typer.Argument(..., help="Shard directories or .parquet files."),

@@ -87,10 +87,11 @@ def test_sunsky_ground_truth_has_the_sun_in_its_texel_and_a_lit_ground():
     disc = np.pi * np.radians(0.5358 / 2) ** 2
     centre = _eval_emitter(mitsuba().load_dict(lighting._emitter(mitsuba(), sky_scale=0.0)), sun).mean()
     assert 0.6 * centre * disc < sun_power < 1.05 * centre * disc  # limb darkening: below the centre's
-    # ground: rho_g E_h / pi, uniform
+    # ground: rho_g E_h / pi, uniform (E_h of the sky texels and the sun, to the map's resolution)
     up = np.clip(grid.directions[..., 1], 0, None)
     e_h = (probe[:64] * (up[:64] * d_omega[:64])[..., None]).sum((0, 1))
-    np.testing.assert_allclose(probe[100, 17], 0.2 * e_h / np.pi, rtol=1e-9)
+    np.testing.assert_allclose(probe[100, 17], 0.2 * e_h / np.pi, rtol=1e-2)  # the sun: its texel centre
+    assert np.ptp(probe[64:], axis=(0, 1)).max() < 1e-9
 
 
 def _ball():
@@ -168,3 +169,51 @@ def test_canonical_head_ablation_renders(tmp_path):
     out = render_case(draw_case(5, 1, options), options)
     assert out["meta"]["head"]["source"] == "mediapipe-canonical"
     assert out["photo"].shape == (64, 64, 3) and out["meta"]["face_clipped_fraction"] == 0.0
+
+
+def test_baselines_are_exact_where_they_should_be():
+    from f2l.lighting import sh
+    from f2l.render.evaluate import baseline_probes
+
+    grid = LatLongGrid(64, 128)
+    smooth = np.clip(1.0 + sh.reconstruct(np.eye(9)[2] * 0.8, grid), 0, None)  # 1 + y-dipole: in SH9
+    probes = baseline_probes(smooth, grid)
+    # texel-mean quadrature: exact for a constant, to the texel's curvature for a dipole
+    np.testing.assert_allclose(probes["SH9 oracle"], smooth, atol=2e-3)
+    np.testing.assert_allclose(probes["SH25 oracle"], smooth, atol=2e-3)
+    np.testing.assert_allclose(baseline_probes(np.ones((64, 128, 3)), grid)["SH25 oracle"], 1.0, atol=1e-12)
+    uniform = probes["uniform sky"]
+    assert np.ptp(uniform[:32]) == 0 and np.ptp(uniform[32:]) == 0 and uniform[40, 0, 0] == 0.2
+
+
+def test_eval_real_chain_on_two_rendered_faces(tmp_path):
+    """render-faces -> fit-faces -> twin-geometry -> estimate -> eval-real, small: the make
+    eval-real chain with its real code paths (tables with baselines, splits, breakdowns)."""
+    f2l = [sys.executable, "-m", "f2l.cli"]
+
+    def run(*args):
+        proc = subprocess.run([*f2l, *map(str, args)], capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return proc.stdout
+
+    pbr, fitted, twins = tmp_path / "pbr", tmp_path / "fitted", tmp_path / "twins"
+    run("render-faces", "--out", pbr, "--n", "2", "--seed", "0", "--image-px", "256", "--spp", "16", "--json")
+    run("fit-faces", pbr / "photos", "--out", fitted, "--gt-probes", pbr / "probes", "--json", "--no-overlays")
+    twin = json.loads(run("twin-geometry", fitted, "--render", pbr, "--out", twins, "--json"))
+    assert twin["twins"] == 2
+    run("estimate", fitted, "-m", "sh9", "--out", tmp_path / "est", "--json")
+    run("estimate", twins, "-m", "sh9", "--out", tmp_path / "est_twin", "--json")
+    text = run("eval-real", pbr, "--est", tmp_path / "est", "--est", f"true geometry={tmp_path / 'est_twin'}",
+               "--out", tmp_path / "report")
+    md = (tmp_path / "report" / "eval_real.md").read_text()
+    for needed in ("uniform sky", "SH9 oracle", "SH25 oracle", "| sh9 |", "sh9 (true geometry)",
+                   "Reporting part (1 cases", "Tuning part (1 cases", "Breakdowns"):
+        assert needed in md, needed
+    assert md in text
+    import csv
+
+    with open(tmp_path / "report" / "eval_real_rows.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["split"] for r in rows} == {"tune", "report"}
+    oracle = [float(r["MAE (s)"]) for r in rows if r["method"] == "SH25 oracle"]
+    assert all(0.0 <= v < 0.5 for v in oracle)

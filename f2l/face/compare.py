@@ -22,18 +22,26 @@ import numpy as np
 
 def true_geometry_twin(fitted, truth, threads: int = 2):
     """(twin record, normal errors in degrees over the common masked pixels)."""
-    from f2l.face import geometry
     from f2l.synth.render import posed_face_mesh
+
+    pose = truth.meta["pose_deg"]
+    vertices, faces, vnormals = posed_face_mesh((pose["yaw"], pose["pitch"], pose["roll"]))
+    return twin_from_mesh(fitted, vertices, faces, vnormals, float(truth.meta["focal_px"]),
+                          (truth.image_height, truth.image_width), dict(truth_id=truth.face_id), threads)
+
+
+def twin_from_mesh(fitted, vertices, faces, vnormals, focal_px: float, image_hw, extra_meta=None,
+                   threads: int = 2):
+    """The twin of ``fitted`` on a true mesh given in the camera frame (camera at the origin
+    looking along −Z, cm), seen by a pinhole of ``focal_px`` over an ``image_hw`` photo."""
+    from f2l.face import geometry
     from f2l.transport import compute_visibility
 
     crop = fitted.meta["crop"]
     k = crop["side"] / crop["resolution"]
     rc = fitted.pixel_rc.astype(np.float64)
     xy = np.stack([crop["x0"] + (rc[:, 1] + 0.5) * k, crop["y0"] + (rc[:, 0] + 0.5) * k], axis=1)
-    pose = truth.meta["pose_deg"]
-    vertices, faces, vnormals = posed_face_mesh((pose["yaw"], pose["pitch"], pose["roll"]))
-    rays = geometry.rays_for(xy, float(truth.meta["focal_px"]),
-                             (truth.image_height, truth.image_width))
+    rays = geometry.rays_for(xy, float(focal_px), tuple(image_hw))
     hit, points, normals = geometry.rasterise(vertices, faces, vnormals, rays)
     bits = compute_visibility(vertices, faces, points, normals, fitted.grid, threads=threads,
                               pixel_rc=fitted.pixel_rc[hit])
@@ -47,7 +55,7 @@ def true_geometry_twin(fitted, truth, threads: int = 2):
     cos = np.einsum("ij,ij->i", twin_normals[mask].astype(np.float64),
                     fitted.normals[mask].astype(np.float64))
     errors = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    meta = dict(fitted.meta, true_geometry_of=fitted.face_id, truth_id=truth.face_id)
+    meta = dict(fitted.meta, true_geometry_of=fitted.face_id, **(extra_meta or {}))
     twin = dataclasses.replace(fitted, points=twin_points, normals=twin_normals,
                                visibility_bits=twin_bits, mask=mask, meta=meta)
     return twin, errors

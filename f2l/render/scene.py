@@ -6,15 +6,16 @@ along −Z, cm). Two kinds of lighting:
 - :class:`MapLighting`: a lat-long radiance map in f2l's layout (any size). Mitsuba's ``envmap``
   puts the map's u = 0 at f2l's u = 0.5 (measured: ``tests/test_render.py`` checks a one-texel
   light and a rendered sun-lit face), so the map is handed over rolled by half its width.
-- :class:`SunSkyLighting`: Mitsuba's ``sunsky`` emitter (Hosek–Wilkie 2012 sky and sun disc of
+- :class:`SunSkyLighting`: Mitsuba's ``sunsky`` (Hosek–Wilkie 2012 sky and a sun disc of
   0.5358°), whose own frame is +Z up (``to_world`` turns it to +Y up; its ``sun_direction`` is
-  then in world coordinates), over a Lambertian ground disk 1.6 m below the eyes.
+  then in world coordinates). Its sky is evaluated into a map with a lit Lambertian ground below
+  the horizon, and its sun, integrated over the disc, becomes a directional light.
 
-:func:`ground_truth_probe` gives the probe a case is judged against, on f2l's grid: the map's
-area average, or for the sky the texel means of the sky (4 × 4 samples per texel), the sun's
-integrated power put into its texel, and the lit ground's radiance ρ_g E_h / π below the horizon.
+:func:`ground_truth_probe` gives the probe a case is judged against, on f2l's grid: the area
+average of the map the renderer used, and for the sky model the sun's integrated power in its
+texel.
 
-The integrator is Mitsuba's ``path`` (max depth 6: skin–skin, skin–shoulder and ground bounces);
+The integrator is Mitsuba's ``path`` (max depth 6: skin–skin, skin–shoulder bounces);
 ``max_depth=2`` is direct light only (the "no interreflection" ablation). An ``aov`` pass of depth
 gives the head's image mask.
 """
@@ -31,7 +32,6 @@ from f2l.render.heads import PART_CAVITY, PART_EYE, PART_HAIR, PART_SHIRT, PART_
 
 __all__ = ["MapLighting", "SunSkyLighting", "RenderSettings", "ground_truth_probe", "render_head"]
 
-GROUND_DEPTH_CM = 160.0
 SUN_APERTURE_DEG = 0.5358  # Mitsuba's sunsky default: the sun's angular diameter
 
 
@@ -63,27 +63,55 @@ class MapLighting:
 
 @dataclass
 class SunSkyLighting:
-    """Hosek–Wilkie sky + sun (Mitsuba ``sunsky``), sun direction in f2l's frame, over a ground."""
+    """Hosek–Wilkie sky + sun (Mitsuba ``sunsky``), sun direction in f2l's frame, over a ground.
+
+    Rendered as two emitters: the sky (and the Lambertian ground it and the sun light, ρ_g E_h / π,
+    below the horizon) as an ``envmap`` of :attr:`MAP_SHAPE` texels evaluated from ``sunsky``, and
+    the sun as a ``directional`` emitter carrying the sun disc's integrated radiance. (A ground
+    disk in the scene went black near the horizon: float32 self-intersection kilometres away.)
+    """
 
     sun_direction: np.ndarray
     turbidity: float
     ground_albedo: float
-    sun_scale: float = 1.0
-    sky_scale: float = 1.0
+    MAP_SHAPE = (256, 512)
 
-    def _emitter(self, mi, sun_scale=None, sky_scale=None) -> dict:
+    def _emitter(self, mi, sun_scale=1.0, sky_scale=1.0) -> dict:
         return {"type": "sunsky", "sun_direction": [float(c) for c in self.sun_direction],
                 "turbidity": float(self.turbidity), "albedo": float(self.ground_albedo),
-                "sun_scale": float(self.sun_scale if sun_scale is None else sun_scale),
-                "sky_scale": float(self.sky_scale if sky_scale is None else sky_scale),
+                "sun_scale": float(sun_scale), "sky_scale": float(sky_scale),
                 "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90)}
 
+    def sun_power(self) -> np.ndarray:
+        """∫ L_sun dω over the sun's disc (RGB): the irradiance it gives a surface facing it."""
+        if not hasattr(self, "_sun_power"):
+            self._sun_power = _sun_power(self, mitsuba())
+        return self._sun_power
+
+    def sky_map(self) -> np.ndarray:
+        """Sky radiance above the horizon, lit ground below, on a :attr:`MAP_SHAPE` lat-long grid."""
+        from f2l.lighting.grid import LatLongGrid
+
+        if hasattr(self, "_sky_map"):
+            return self._sky_map
+        mi = mitsuba()
+        grid = LatLongGrid(*self.MAP_SHAPE)
+        h = grid.height
+        sky = mi.load_dict(self._emitter(mi, sun_scale=0.0))
+        radiance = np.zeros(grid.shape + (3,))
+        radiance[: h // 2] = _eval(sky, mi, grid.directions[: h // 2].reshape(-1, 3)).reshape(h // 2, grid.width, 3)
+        up = np.clip(grid.directions[: h // 2, :, 1], 0.0, None)
+        sky_irradiance = (radiance[: h // 2] * (up * grid.solid_angles[: h // 2])[..., None]).sum(axis=(0, 1))
+        sun_irradiance = self.sun_power() * max(float(np.asarray(self.sun_direction)[1]), 0.0)
+        radiance[h // 2:] = self.ground_albedo * (sky_irradiance + sun_irradiance) / np.pi
+        self._sky_map = radiance
+        return radiance
+
     def emitters(self, mi) -> dict:
-        return {"sky": self._emitter(mi),
-                "ground": {"type": "disk",
-                           "to_world": mi.ScalarTransform4f().translate([0, -GROUND_DEPTH_CM, 0])
-                           .rotate([1, 0, 0], -90).scale(2.0e5),
-                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(self.ground_albedo)}}}}
+        sun = np.asarray(self.sun_direction, dtype=np.float64)
+        return {**MapLighting(self.sky_map().astype(np.float32)).emitters(mi),
+                "sun": {"type": "directional", "direction": [float(c) for c in -sun],
+                        "irradiance": {"type": "rgb", "value": [float(c) for c in self.sun_power()]}}}
 
 
 def _eval(emitter, mi, directions: np.ndarray) -> np.ndarray:
@@ -113,33 +141,16 @@ def _sun_power(lighting: SunSkyLighting, mi, n: int = 48) -> np.ndarray:
     return (_eval(emitter, mi, dirs) * d_omega[:, None]).sum(axis=0)
 
 
-def ground_truth_probe(lighting, grid, supersample: int = 4) -> np.ndarray:
-    """The lighting as a probe (H, W, 3) float64 on ``grid`` (module docstring)."""
+def ground_truth_probe(lighting, grid) -> np.ndarray:
+    """The lighting as a probe (H, W, 3) float64 on ``grid``: the area average of the map the
+    renderer used, plus for the sky model the sun's power in the texel of its direction."""
     from f2l.lighting.resample import resample
 
     if isinstance(lighting, MapLighting):
         return resample(np.asarray(lighting.radiance, dtype=np.float64), grid.height, grid.width)
-    mi = mitsuba()
-    sky = mi.load_dict(lighting._emitter(mi, sun_scale=0.0))
-    h, w, s = grid.height, grid.width, supersample
-    fine_v = (np.arange(h // 2 * s) + 0.5) / (h * s)  # sky rows only
-    fine_u = (np.arange(w * s) + 0.5) / (w * s)
-    uu, vv = np.meshgrid(fine_u, fine_v)
-    theta, phi = np.pi * (2 * uu - 1), np.pi * vv
-    dirs = np.stack([np.sin(phi) * np.sin(theta), np.cos(phi), -np.sin(phi) * np.cos(theta)], -1).reshape(-1, 3)
-    # texel means weighted by each sample's solid angle (sin φ)
-    values = _eval(sky, mi, dirs).reshape(h // 2, s, w, s, 3)
-    weight = np.sin(phi).reshape(h // 2, s, w, s, 1)
-    probe = np.zeros((h, w, 3))
-    probe[: h // 2] = (values * weight).sum(axis=(1, 3)) / weight.sum(axis=(1, 3))
-    d_omega = grid.solid_angles
-    if lighting.sun_scale > 0:
-        power = _sun_power(lighting, mi) * lighting.sun_scale
-        row, col = grid.direction_to_texel(np.asarray(lighting.sun_direction, dtype=np.float64))
-        probe[int(row), int(col)] += power / d_omega[int(row), int(col)]
-    up = grid.directions[..., 1]
-    irradiance = (probe[: h // 2] * (np.clip(up[: h // 2], 0, None) * d_omega[: h // 2])[..., None]).sum(axis=(0, 1))
-    probe[h // 2:] = lighting.ground_albedo * irradiance / np.pi
+    probe = resample(lighting.sky_map(), grid.height, grid.width)
+    row, col = grid.direction_to_texel(np.asarray(lighting.sun_direction, dtype=np.float64))
+    probe[int(row), int(col)] += lighting.sun_power() / grid.solid_angles[int(row), int(col)]
     return probe
 
 

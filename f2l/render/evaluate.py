@@ -1,0 +1,295 @@
+"""``f2l eval-real``: the paper's Table 2 on ``f2l render-faces`` cases, with baselines and breakdowns.
+
+Inputs: the render folder (``meta/``, ``probes/``, ``truth/``) and one or more estimate folders
+written by ``f2l estimate`` (from ``f2l fit-faces`` records of the render's photos, or from their
+true-geometry twins, :func:`write_true_geometry_twins`). A record belongs to the case whose id is
+its photo's stem.
+
+Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid against the case's
+128 × 256 truth area-resampled to that grid, with the case's own sky kind and sun direction
+(exact for the Hosek–Wilkie cases, the brightest texel of a map). Baselines, scored the same way:
+
+- ``uniform sky``: constant radiance over the upper hemisphere and a grey (albedo 0.2) ground it
+  lights: what one knows with no estimate at all (every metric is scale-invariant);
+- ``SH9 oracle`` / ``SH25 oracle``: the truth projected onto real SH of order 2 / 4 (texel-mean
+  quadrature) and reconstructed, negative lobes clipped at 0 — the best those bases can do.
+
+The cases are split by index: even = the tuning part (look at it freely while changing f2l),
+odd = the reporting part (the README's figures). Breakdowns (reporting part): by sky source, by
+sun elevation band, by sun behind the head.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from f2l.lighting.grid import LatLongGrid
+
+__all__ = ["baseline_probes", "evaluate_real", "write_true_geometry_twins", "case_of_source"]
+
+BASELINES = ("uniform sky", "SH9 oracle", "SH25 oracle")
+ELEVATION_BANDS_DEG = ((0.0, 15.0), (15.0, 45.0), (45.0, 90.0))
+SPLITS = {"tune": 0, "report": 1}
+
+
+def case_of_source(source_path: str) -> str:
+    return Path(source_path).stem
+
+
+def load_cases(render_dir: Path) -> dict[str, dict]:
+    cases = {}
+    for path in sorted((Path(render_dir) / "meta").glob("*.json")):
+        meta = json.loads(path.read_text())
+        cases[meta["face_id"]] = meta
+    return cases
+
+
+def split_of(meta: dict) -> str:
+    return "report" if meta["index"] % 2 == SPLITS["report"] else "tune"
+
+
+def baseline_probes(truth: np.ndarray, grid: LatLongGrid) -> dict[str, np.ndarray]:
+    """The three baselines (module docstring) for one truth probe on ``grid``."""
+    from f2l.lighting import sh
+
+    uniform = np.ones(grid.shape + (3,))
+    uniform[grid.sky_rows:] = 0.2
+    out = {"uniform sky": uniform}
+    for name, order in (("SH9 oracle", 2), ("SH25 oracle", 4)):
+        coeffs = sh.project(truth, grid, order)
+        out[name] = np.clip(sh.reconstruct(coeffs, grid), 0.0, None)
+    return out
+
+
+def write_true_geometry_twins(fitted_dir: Path, render_dir: Path, out_dir: Path, threads: int = 2) -> dict:
+    """Twin every fitted record of a rendered photo on the renderer's true mesh (f2l's camera at
+    the origin: the render's camera sat at +Z ``camera_distance_cm``); ground-truth probes copied."""
+    from f2l.face.compare import twin_from_mesh
+    from f2l.io.shards import ShardWriter, iter_records, load_gt_probe, write_side_probe
+
+    cases = load_cases(render_dir)
+    written, skipped = 0, 0
+    with ShardWriter(out_dir, overwrite=True) as writer:
+        for rec in iter_records(fitted_dir):
+            meta = cases.get(case_of_source(rec.source_path)) if getattr(rec, "ok", False) else None
+            if meta is None:
+                skipped += 1
+                continue
+            truth = np.load(Path(render_dir) / "truth" / f"{meta['face_id']}.npz")
+            vertices = truth["vertices_cm"].astype(np.float64) - [0.0, 0.0, meta["settings"]["camera_distance_cm"]]
+            twin, _ = twin_from_mesh(rec, vertices, truth["faces"].astype(np.int64),
+                                     truth["normals"].astype(np.float64), meta["focal_px"],
+                                     (meta["settings"]["height_px"], meta["settings"]["width_px"]),
+                                     {"truth_id": meta["face_id"]}, threads)
+            probe = load_gt_probe(fitted_dir, rec) if rec.gt_probe_path else None
+            twin.gt_probe_path = write_side_probe(out_dir, twin.face_id, probe) if probe is not None else None
+            twin.photo_path = None
+            writer.write(twin)
+            written += 1
+    return {"twins": written, "skipped": skipped, "out": str(out_dir)}
+
+
+def _record_cases(shards: list[Path]) -> dict[str, str]:
+    import pyarrow.parquet as pq
+
+    out = {}
+    for shard in shards:
+        for f in sorted(Path(shard).glob("*.parquet")):
+            table = pq.read_table(f, columns=["face_id", "source_path"])
+            for fid, src in zip(table.column("face_id").to_pylist(), table.column("source_path").to_pylist()):
+                out[fid] = case_of_source(src)
+    return out
+
+
+def _truth_on(render_dir: Path, case: str, grid: LatLongGrid, cache: dict) -> np.ndarray:
+    key = (case, grid.shape)
+    if key not in cache:
+        from f2l.io.exr import read_exr
+        from f2l.lighting.resample import resample
+
+        cache[key] = resample(read_exr(Path(render_dir) / "probes" / f"{case}.exr").astype(np.float64),
+                              grid.height, grid.width)
+    return cache[key]
+
+
+def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = LatLongGrid(64, 128)) -> list[dict]:
+    """One row per (method, case): the seven metrics, run time, split and breakdown keys.
+
+    ``runs`` maps a label (e.g. "fitted", "true geometry") to an ``f2l estimate`` output folder;
+    its rows are named "<model>" for the label "fitted" and "<model> (<label>)" otherwise.
+    """
+    import pyarrow.parquet as pq
+
+    from f2l.io.exr import read_exr
+    from f2l.metrics import evaluate_pair
+
+    render_dir = Path(render_dir)
+    cases = load_cases(render_dir)
+    cache: dict = {}
+    rows = []
+
+    def row(method, case, metrics, runtime_s):
+        meta = cases[case]
+        sky = meta["sky"]
+        return {"method": method, "case": case, "split": split_of(meta), "source": meta["lighting"]["source"],
+                "sky_kind": sky["kind"], "sun_elevation_deg": sky["sun_elevation_deg"],
+                "sun_behind_head": sky["sun_behind_head"], "runtime_s": runtime_s, **metrics}
+
+    for case, meta in cases.items():
+        truth = _truth_on(render_dir, case, grid, cache)
+        for name, probe in baseline_probes(truth, grid).items():
+            rows.append(row(name, case, _pair(evaluate_pair, probe, truth, grid, meta, None), 0.0))
+    for label, est_dir in runs.items():
+        est_dir = Path(est_dir)
+        run = json.loads((est_dir / "run.json").read_text())
+        record_case = _record_cases([Path(s) for s in run["shards"]])
+        for est in pq.read_table(est_dir / "estimates.parquet").to_pylist():
+            case = record_case.get(est["face_id"])
+            if est["status"] != "ok" or case not in cases:
+                continue
+            g = LatLongGrid(est["grid_height"], est["grid_width"])
+            truth = _truth_on(render_dir, case, g, cache)
+            probe = read_exr(est_dir / est["probe_path"]).astype(np.float64)
+            sun = est.get("sun_direction")
+            metrics = _pair(evaluate_pair, probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
+            method = est["model"] if label == "fitted" else f"{est['model']} ({label})"
+            rows.append(row(method, case, metrics, float(est["runtime_s"])))
+    return rows
+
+
+def _pair(evaluate_pair, probe, truth, grid, meta, est_sun):
+    sky = meta["sky"]
+    overcast = sky["kind"] == "overcast"
+    return evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun,
+                         gt_sun_dir=None if overcast else np.asarray(sky["sun_direction"]))
+
+
+def _mean(values) -> float:
+    v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return float(np.mean(v)) if v else math.nan
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    return "—" if x is None or math.isnan(x) else f"{x:.{digits}g}"
+
+
+def summary_table(rows: list[dict], split: str | None = "report") -> str:
+    """Markdown: one line per method, the seven metrics (mean; Sun metrics over clear cases),
+    median Sun-ang, and mean run time per face."""
+    from f2l.metrics import METRIC_NAMES
+
+    chosen = [r for r in rows if split is None or r["split"] == split]
+    by = defaultdict(list)
+    for r in chosen:
+        by[r["method"]].append(r)
+    header = ["method", "cases", *METRIC_NAMES, "median Sun-ang (°)", "s / face"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    order = sorted(by, key=lambda m: (m not in BASELINES, "(" in m, m))
+    for method in order:
+        rs = by[method]
+        vals = [_fmt(_mean(r[k] for r in rs)) for k in METRIC_NAMES]
+        angles = [r["Sun-ang (°)"] for r in rs if not math.isnan(r["Sun-ang (°)"])]
+        median = float(np.median(angles)) if angles else math.nan
+        runtime = _mean(r["runtime_s"] for r in rs) if method not in BASELINES else math.nan
+        lines.append(f"| {method} | {len(rs)} | " + " | ".join(vals) + f" | {_fmt(median)} | {_fmt(runtime)} |")
+    return "\n".join(lines)
+
+
+def breakdown_table(rows: list[dict], split: str = "report") -> str:
+    """Markdown: mean Sun-ang / MAE (s) / Full-dω MAE (l) per method within each group."""
+    chosen = [r for r in rows if r["split"] == split]
+    groups = {}
+    for r in chosen:
+        keys = [f"sky: {'Hosek-Wilkie' if r['source'] == 'sunsky' else 'HDR map ' + r['source']}",
+                f"sky: {'Hosek-Wilkie' if r['source'] == 'sunsky' else 'all HDR maps'}"]
+        if r["sky_kind"] == "clear":
+            lo, hi = next(b for b in ELEVATION_BANDS_DEG if b[0] <= r["sun_elevation_deg"] < b[1] or b[1] == 90.0)
+            keys.append(f"sun {lo:.0f}–{hi:.0f}°")
+            keys.append("sun behind the head" if r["sun_behind_head"] else "sun in front")
+        else:
+            keys.append("overcast")
+        for k in dict.fromkeys(keys):
+            groups.setdefault(k, []).append(r)
+    methods = sorted({r["method"] for r in chosen}, key=lambda m: (m not in BASELINES, "(" in m, m))
+    lines = ["| group | cases | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 2),
+             "| *(each cell: mean Sun-ang ° / MAE (s) / Full-dω MAE (l))* | | " + " | ".join("" for _ in methods) + " |"]
+    for key in sorted(groups):
+        rs = groups[key]
+        cells = []
+        for m in methods:
+            mr = [r for r in rs if r["method"] == m]
+            cells.append(f"{_fmt(_mean(r['Sun-ang (°)'] for r in mr), 2)} / {_fmt(_mean(r['MAE (s)'] for r in mr), 2)}"
+                         f" / {_fmt(_mean(r['Full-dω MAE (l)'] for r in mr), 2)}")
+        n_cases = len({r["case"] for r in rs})
+        lines.append(f"| {key} | {n_cases} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_report(rows: list[dict], out_dir: Path) -> dict:
+    """``eval_real.md`` (reporting part, tuning part, breakdowns) and ``eval_real_rows.csv``."""
+    import csv
+
+    from f2l.io.atomic import atomic_path, write_text_atomic
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n = {s: len({r["case"] for r in rows if r["split"] == s}) for s in SPLITS}
+    sunny = len({r["case"] for r in rows if r["split"] == "report" and r["sky_kind"] == "clear"})
+    text = (f"## Reporting part ({n['report']} cases, {sunny} with a sun; odd case indices)\n\n"
+            + summary_table(rows, "report")
+            + f"\n\n## Tuning part ({n['tune']} cases; even case indices)\n\n" + summary_table(rows, "tune")
+            + "\n\n## Breakdowns (reporting part)\n\n" + breakdown_table(rows, "report") + "\n")
+    write_text_atomic(out_dir / "eval_real.md", text)
+    keys = list(rows[0]) if rows else []
+    with atomic_path(out_dir / "eval_real_rows.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=keys)
+            w.writeheader()
+            w.writerows(rows)
+    return {"markdown": str(out_dir / "eval_real.md"), "rows": str(out_dir / "eval_real_rows.csv"), "cases": n}
+
+
+ABLATION_METRICS = ("Sun-ang (°)", "MAE (s)", "Full-dω MAE (l)")
+
+
+def _read_rows(path: Path) -> list[dict]:
+    import csv
+
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            for k in (*ABLATION_METRICS, "runtime_s"):
+                r[k] = float(r[k]) if r[k] not in ("", "nan") else math.nan
+            rows.append(r)
+    return rows
+
+
+def ablation_table(eval_dir: Path, n: int) -> str:
+    """Markdown: per model, the three headline metrics on the full renders (cases < ``n``) and on
+    each ablation's re-renders of the same cases, with the share of the error each removes."""
+    eval_dir = Path(eval_dir)
+    variants = {"full render": _read_rows(eval_dir / "eval_real_rows.csv")}
+    for path in sorted((eval_dir / "ablations").glob("*/eval_real_rows.csv")):
+        variants[path.parent.name] = _read_rows(path)
+
+    def index(case: str) -> int:
+        return int(case.rsplit("-", 1)[1])
+
+    for name, rows in variants.items():
+        variants[name] = [r for r in rows if index(r["case"]) < n and "(" not in r["method"]]
+    methods = sorted({r["method"] for r in variants["full render"]}, key=lambda m: (m not in BASELINES, m))
+    lines = ["| method | render | " + " | ".join(ABLATION_METRICS) + " | error removed (Sun-ang / MAE (s) / Full-dω) |",
+             "|" + "---|" * (len(ABLATION_METRICS) + 3)]
+    for m in methods:
+        base = {k: _mean(r[k] for r in variants["full render"] if r["method"] == m) for k in ABLATION_METRICS}
+        for name, rows in variants.items():
+            vals = {k: _mean(r[k] for r in rows if r["method"] == m) for k in ABLATION_METRICS}
+            removed = " / ".join("—" if name == "full render" or not base[k] or math.isnan(vals[k])
+                                 else f"{100 * (base[k] - vals[k]) / base[k]:+.0f}%" for k in ABLATION_METRICS)
+            lines.append(f"| {m} | {name} | " + " | ".join(_fmt(vals[k]) for k in ABLATION_METRICS) + f" | {removed} |")
+    return "\n".join(lines)
