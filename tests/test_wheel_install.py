@@ -57,6 +57,7 @@ def test_wheel_holds_package_data_and_entry_points(wheel):
     expected = [f"f2l/schemas/{p.name}" for p in (REPO / "schemas").glob("*.schema.json")]
     expected += [f"f2l/pipelines/{p.name}" for p in (REPO / "pipelines").glob("*.toml")]
     expected += [f"f2l/data/{p.name}" for p in (REPO / "f2l" / "data").iterdir()]
+    expected += [f"f2l/render/data/hdri/{p.name}" for p in (REPO / "f2l" / "render" / "data" / "hdri").iterdir()]
     expected += [f"f2l_builtin_models/data/{p.name}" for p in (REPO / "plugins" / "f2l_builtin_models" / "data").iterdir()]
     expected += [str(p.relative_to(REPO)) for p in (REPO / "f2l").rglob("*.py")]
     expected += [str(p.relative_to(REPO / "plugins")) for p in (REPO / "plugins" / "f2l_builtin_models").rglob("*.py")]

@@ -57,7 +57,7 @@ class LatentSkyProblem:
     def __init__(self, obs: FaceObservation, model, cfg: EstimatorConfig) -> None:
         grid = obs.grid
         self.grid, self.model, self.cfg = grid, model, cfg
-        idx = usable_pixels(obs)
+        idx = usable_pixels(obs, cfg.highlight_mad)
         if cfg.max_pixels and idx.size > cfg.max_pixels:
             idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_pixels, replace=False))
         if cfg.sun_max_pixels and idx.size > cfg.sun_max_pixels:
