@@ -13,12 +13,11 @@ For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
 4. skin mask: inside the face oval and off the features and border (:mod:`f2l.face.regions`),
    not clipped, not near-black;
 5. visibility bits on the lighting grid (:func:`f2l.transport.compute_visibility`), traced
-   for the pixels the estimator uses (``transport_pixels="mask"``, the default) or for every
-   face pixel (``"all"``). With ``"mask"``, the other pixels (features, border, clipped,
-   near-black: ~40% of a face, many of them grazing) hold their front-facing hemisphere
-   without self-shadowing, and the record's ``meta["transport"]`` says so; the estimator and
-   the metrics read masked pixels only, so their result is the same either way, for ~1/3 less
-   transport time.
+   for the pixels the estimator uses (``transport_pixels="mask"``, the default: the skin mask
+   and the clipped skin pixels, which sun models read as censored observations) or for every
+   face pixel (``"all"``). With ``"mask"``, the other pixels (features, border, near-black,
+   many of them grazing) hold their front-facing hemisphere without self-shadowing, and the
+   record's ``meta["transport"]`` says so; the estimator and the metrics never read them.
 """
 
 from __future__ import annotations
@@ -233,7 +232,7 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
         return Rejected(face_index, "too_few_pixels", f"face {face_index}: {int(mask.sum())} "
                         f"usable skin pixels < {options.min_mask_pixels}")
     t1 = time.perf_counter()
-    traced = mask if options.transport_pixels == "mask" else np.ones_like(mask)
+    traced = (mask | excluded["clipped"]) if options.transport_pixels == "mask" else np.ones_like(mask)
     bits = np.zeros((len(mask), packed_width(options.grid)), np.uint8)
     bits[~traced] = np.packbits(front_mask(normals[~traced], options.grid), axis=1,
                                 bitorder="little")

@@ -28,7 +28,8 @@ from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import relative_message
 
 CALIBRATE_VERSION = 1
-FIT_VERSION = 2  # 2: large photos detected on a reduced copy, fitted from full-resolution windows
+FIT_VERSION = 3  # 2: large photos detected on a reduced copy, fitted from full-resolution windows;
+# 3: clipped skin pixels get traced visibility (the estimator reads them as censored observations)
 
 
 def _rounded(stats: dict) -> dict:
