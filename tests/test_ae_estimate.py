@@ -133,3 +133,24 @@ def test_radiance_on_another_grid_keeps_the_energy(model):
     e_fine = np.einsum("bhwc,hw->bc", fine, GRID.solid_angles)
     e_small = np.einsum("bhwc,hw->bc", small, LatLongGrid(32, 64).solid_angles)
     assert np.allclose(e_fine, e_small, rtol=1e-4)
+
+
+def test_clipped_pixels_reach_the_latent_sky_fit(model, face_under_corpus_sky):
+    """ae reads a face's partly clipped pixels as sunsky does: clipped channels as lower bounds."""
+    import torch
+
+    from f2l.ae.estimate import LatentSkyProblem
+    from f2l.estimate import EstimatorConfig, FaceObservation
+
+    face, _ = face_under_corpus_sky
+    rgb = np.asarray(face.observed_rgb, np.float64)
+    bright = rgb.max(1) >= np.percentile(rgb.max(1), 85)
+    observed = rgb / np.percentile(rgb.max(1), 85)
+    observed[bright] = np.minimum(observed[bright] * np.array([1.4, 1.0, 0.8]), 1.0)  # red clips first
+    obs = FaceObservation(face.normals, observed, np.asarray(face.mask) & ~bright, face.visibility_bits, GRID)
+    prob = LatentSkyProblem(obs, model, EstimatorConfig())
+    assert prob.clip is not None and prob.clip["bound"].any() and not prob.clip["bound"].all()
+    assert LatentSkyProblem(obs, model, EstimatorConfig(clipped_bounds=False)).clip is None
+    dark = torch.zeros(1, 3, prob.rows, prob.width)
+    cost = float(prob.clipped_term(dark, torch.ones(1, 3), torch.zeros(1)))
+    np.testing.assert_allclose(cost, float(prob.clip["target"].sum()), rtol=1e-3)  # all short by their value

@@ -39,7 +39,7 @@ import torch.nn.functional as F
 
 from f2l.ae.encoding import decode_unit, rotate_columns
 from f2l.estimate.estimator import (EstimateResult, EstimationError, EstimatorConfig, FaceObservation,
-                                    _albedo_prior_nll, usable_pixels)
+                                    _albedo_prior_nll, clipped_pixels, usable_pixels)
 from f2l.estimate.skin import skin_albedo_mean
 from f2l.estimate.sky_transport import SkyTransport
 from f2l.transport import Transport
@@ -82,6 +82,29 @@ class LatentSkyProblem:
         self.target = torch.as_tensor(np.asarray(obs.observed_rgb, np.float64)[idx].T, dtype=torch.float32)  # (3, N)
         self.target_scale = float(self.target.mean().clamp_min(1e-12))
         self.luma = torch.tensor([0.2126, 0.7152, 0.0722])
+        self.clip = self._clipped(obs, cfg)
+
+    def _clipped(self, obs: FaceObservation, cfg: EstimatorConfig) -> dict | None:
+        """The clipped face pixels' transport and targets (f2l.estimate.estimator.clipped_pixels):
+        clipped channels are lower bounds, the others observations."""
+        cidx = clipped_pixels(obs, cfg)
+        if cidx.size == 0:
+            return None
+        grid = self.grid
+        ct = Transport(obs.visibility_bits[cidx], np.asarray(obs.normals, np.float64)[cidx], grid)
+        sky = SkyTransport(ct, grid, block=BLOCK, core_texels=cfg.sun_core_texels)
+        ground_rows = grid.height - self.rows
+        target = torch.as_tensor(np.asarray(obs.observed_rgb, np.float64)[cidx].T, dtype=torch.float32)
+        return {"sky": sky, "t_blk": sky.t_blk.float(), "target": target, "bound": target >= cfg.clipped_level,
+                "g": torch.as_tensor(ct.block_sums(ground_rows, (ground_rows, 4), first_row=self.rows).sum(1),
+                                     dtype=torch.float32)}
+
+    def clipped_term(self, sky: torch.Tensor, psi: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
+        """Σ over clipped pixels and channels of the censored / ordinary Charbonnier terms, (B,)."""
+        tl = self.transport(sky, ground_albedo, self.clip)
+        r = psi[:, :, None] * tl - self.clip["target"][None]
+        r = torch.where(self.clip["bound"][None], torch.clamp(r, max=0.0), r)
+        return torch.sqrt(r * r + self.cfg.charbonnier_eps**2).sum((1, 2))
 
     # -- forward -----------------------------------------------------------------------------------------
     def shape_sky(self, z_shape: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
@@ -98,25 +121,28 @@ class LatentSkyProblem:
         e = (sky * self.d_omega).reshape(B, 3, self.nbr, br, self.nbc, bc).sum((3, 5))
         return e / self.omega_b
 
-    def ground(self, sky: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
+    def ground(self, sky: torch.Tensor, ground_albedo: torch.Tensor, g: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 3, N) ground bounce g rho_g E_h / pi."""
         e_h = sky.flatten(2) @ self.e_sky  # (B, 3)
-        return (ground_albedo / math.pi)[:, None, None] * e_h[:, :, None] * self.g
+        return (ground_albedo / math.pi)[:, None, None] * e_h[:, :, None] * (self.g if g is None else g)
 
-    def transport(self, sky: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
-        """T l (B, 3, N) of sky radiance (B, 3, rows, W): blocks + exact core + ground."""
+    def transport(self, sky: torch.Tensor, ground_albedo: torch.Tensor, pixels: dict | None = None) -> torch.Tensor:
+        """T l (B, 3, N) of sky radiance (B, 3, rows, W): blocks + exact core + ground, for the
+        fitted pixels or another set (``pixels``: its ``sky`` transport, ``t_blk`` and ``g``)."""
+        sky_t, t_blk, g = (self.sky, self.t_blk, self.g) if pixels is None else \
+            (pixels["sky"], pixels["t_blk"], pixels["g"])
         B = sky.shape[0]
         m = self.block_means(sky).reshape(B * 3, -1)
-        tl = (m @ self.t_blk.T).reshape(B, 3, -1)
+        tl = (m @ t_blk.T).reshape(B, 3, -1)
         k = self.sky.core_texels
         if k > 0:
             flat = sky.flatten(2)  # (B, 3, Lu)
             energy = (self.luma @ flat.detach()) * self.d_omega.reshape(-1)  # (B, Lu)
             texels = torch.topk(energy, k, dim=1).indices  # (B, k)
-            resid = self.sky.cache.rows(texels.numpy()).to(torch.float32)  # (B, k, N)
+            resid = sky_t.cache.rows(texels.numpy()).to(torch.float32)  # (B, k, N)
             core = torch.gather(flat, 2, texels[:, None, :].expand(B, 3, k))  # (B, 3, k)
             tl = tl + torch.bmm(core, resid)
-        return tl + self.ground(sky, ground_albedo)
+        return tl + self.ground(sky, ground_albedo, g)
 
     # -- search -----------------------------------------------------------------------------------------
     def candidate_skies(self) -> tuple[np.ndarray, torch.Tensor]:
@@ -220,9 +246,12 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
 
     def objective(zs, phi, logpsi, u, xg):
         psi, rho, _, rho_g = unpack(zs, phi, logpsi, u, xg)
-        tl = prob.transport(prob.shape_sky(zs, phi), rho_g)
+        sky = prob.shape_sky(zs, phi)
+        tl = prob.transport(sky, rho_g)
         r = psi[:, :, None] * tl - prob.target[None]
         data = torch.sqrt(r * r + cfg.charbonnier_eps**2).mean((1, 2)) / prob.target_scale
+        if prob.clip is not None:
+            data = data + prob.clipped_term(sky, psi, rho_g) / (r.shape[1] * r.shape[2] * prob.target_scale)
         total = data + cfg.light_prior_weight * model.prior_nll_shape(zs)
         if fixed is None:
             total = total + cfg.albedo_prior_weight * _albedo_prior_nll(rho)

@@ -103,10 +103,11 @@ class EstimatorConfig:
     # keeps them. At 1.0 it helped the tuning half of `make eval-real` (ae mean Sun-ang 21.4 ->
     # 14.1 deg, sunsky 15.3 -> 13.5) but not the reporting half (sunsky 20.7 -> 22.6): off by default
     highlight_mad: float | None = None
-    # sun models (``radiance_parts``): clipped face pixels read channel by channel, clipped
-    # channels as lower bounds (_Problem._init_clipped). On the tuning half of `make eval-real`
-    # sunsky's mean Sun-ang 15.4 -> 13.0 deg; reporting half median 12.9 -> 11.1, mean unchanged;
-    # +18% time in `f2l bench`. README "What each change bought".
+    # sun models (sunsky's ``radiance_parts``, ae's latent sky): clipped face pixels read channel
+    # by channel, clipped channels as lower bounds (clipped_pixels). On the tuning half of `make
+    # eval-real` sunsky's mean Sun-ang 15.4 -> 13.0 deg, ae's 21.2 -> 19.8; on the reporting half
+    # sunsky's median 12.9 -> 11.1 (mean unchanged), ae's mean 22.3 -> 21.4; +18-20% time in
+    # `f2l bench`. README "What each change bought".
     clipped_bounds: bool = True
     clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
 
@@ -140,6 +141,24 @@ def highlight_pixels(rgb: np.ndarray, mad_factor: float) -> np.ndarray:
     median = np.median(saturation)
     spread = 1.4826 * np.median(np.abs(saturation - median))
     return (saturation < median - mad_factor * spread) & (total > np.median(total))
+
+
+def clipped_pixels(obs: FaceObservation, cfg: "EstimatorConfig") -> np.ndarray:
+    """Indices of the clipped face pixels sun models read as censored observations (empty unless
+    ``cfg.clipped_bounds``): outside the mask, finite, some but not all channels at or above
+    ``cfg.clipped_level``; evenly thinned to half of ``cfg.sun_max_pixels``."""
+    if not cfg.clipped_bounds:
+        return np.zeros(0, dtype=np.int64)
+    rgb = np.asarray(obs.observed_rgb, np.float64)
+    finite = np.isfinite(rgb).all(1)
+    level = cfg.clipped_level
+    candidates = ~np.asarray(obs.mask, bool) & finite & (np.where(finite[:, None], rgb, 0.0).max(1) >= level) \
+        & (np.where(finite[:, None], rgb, np.inf).min(1) < level)
+    cidx = np.flatnonzero(candidates)
+    limit = max(1, (cfg.sun_max_pixels or cidx.size) // 2)
+    if cidx.size > limit:
+        cidx = cidx[np.round(np.linspace(0, cidx.size - 1, limit)).astype(np.int64)]
+    return cidx
 
 
 def usable_pixels(obs: FaceObservation, highlight_mad: float | None = None) -> np.ndarray:
@@ -265,17 +284,10 @@ class _Problem:
         predicted))), and its other channels are ordinary observations. Skin clips in red first,
         so the green and blue of the pixels facing the sun — the ones that place it — come back."""
         self.clip_hybrid = None
-        if not cfg.clipped_bounds:
-            return
-        rgb = np.asarray(obs.observed_rgb, np.float64)
-        candidates = ~np.asarray(obs.mask, bool) & np.isfinite(rgb).all(1) & (rgb.max(1) >= cfg.clipped_level) \
-            & (rgb.min(1) < cfg.clipped_level)
-        cidx = np.flatnonzero(candidates)
-        limit = max(1, (cfg.sun_max_pixels or cidx.size) // 2)
-        if cidx.size > limit:
-            cidx = cidx[np.round(np.linspace(0, cidx.size - 1, limit)).astype(np.int64)]
+        cidx = clipped_pixels(obs, cfg)
         if cidx.size == 0:
             return
+        rgb = np.asarray(obs.observed_rgb, np.float64)
         from f2l.estimate.sky_transport import SkyTransport
 
         grid = self.grid
