@@ -16,6 +16,8 @@ import tomllib
 from importlib import metadata
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional"}
@@ -167,3 +169,18 @@ def test_ray_executor_without_the_extra_fails_cleanly(small_shards, tmp_path):
                            str(tmp_path / "est"), "--executor", "ray", "--json"], capture_output=True, text=True)
     assert proc.returncode == 2
     assert "pip install 'f2l[ray]'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("missing", ["mitsuba", "anny"])
+def test_render_faces_without_the_extra_fails_cleanly(tmp_path, missing):
+    """A plain install has no renderer: `f2l render-faces` names the extra, without a traceback."""
+    import subprocess
+    import sys
+
+    code = (f"import sys; sys.modules[{missing!r}] = None; sys.argv = ['f2l'] + sys.argv[1:]; "
+            "from f2l.cli import main; main()")
+    proc = subprocess.run([sys.executable, "-c", code, "render-faces", "--out", str(tmp_path / "pbr"), "--n", "1"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "pip install 'f2l[render]'" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "pbr").exists()
