@@ -137,6 +137,7 @@ def test_render_faces_tiny_case_resumes_and_ablations_keep_the_case(tmp_path):
            "--image-px", "96", "--spp", "4", "--json"]
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr
+    assert "CUDA" not in first.stderr, first.stderr  # warp's no-GPU notice goes to the debug log
     summary = json.loads(first.stdout.strip().splitlines()[-1])
     assert summary["ok"] == 1 and not summary["errors"]
     fid = "pbr-s3-00000"

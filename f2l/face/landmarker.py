@@ -21,12 +21,10 @@ same pixel scale, smaller = nearer the camera (MediaPipe's convention).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
 import sys
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
@@ -86,36 +84,20 @@ def _interpreter_class():
     return Interpreter
 
 
-@contextlib.contextmanager
 def _native_stderr_to_debug_log():
     """Route what native code writes to file descriptor 2 while the block runs (LiteRT prints
     "INFO: Created TensorFlow Lite XNNPACK delegate for CPU." from C++, ignoring
     TF_CPP_MIN_LOG_LEVEL) to this module's logger at DEBUG level (``f2l --debug-log``) instead of
     the terminal. Lines that are not "INFO:" (warnings, errors) and everything written when the
     block raises are also passed on to the terminal."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no usable fd 2 (embedded interpreters): leave it alone
-        yield
-        return
-    failed = False
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        except BaseException:
-            failed = True
-            raise
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            for line in sink.read().decode("utf-8", "replace").splitlines():
-                if line.strip():
-                    _log.debug("LiteRT: %s", line.strip())
-                    if failed or not line.startswith("INFO:"):
-                        print(line, file=sys.stderr)
+    from f2l.io.native_stderr import native_stderr_lines
+
+    def handle(line: str, failed: bool) -> None:
+        _log.debug("LiteRT: %s", line.strip())
+        if failed or not line.startswith("INFO:"):
+            print(line, file=sys.stderr)
+
+    return native_stderr_lines(handle)
 
 
 @lru_cache(maxsize=4)

@@ -14,6 +14,8 @@ extruded to a closed head shape so it can stand in for Anny under the same rende
 
 from __future__ import annotations
 
+import logging
+import sys
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -27,6 +29,7 @@ __all__ = ["Head", "anny_head", "canonical_head", "skin_albedo"]
 SKIN_LIGHT = np.array([0.66, 0.47, 0.38])
 SKIN_DARK = np.array([0.14, 0.08, 0.055])
 PART_SKIN, PART_LIPS, PART_BROW, PART_HAIR, PART_SHIRT, PART_EYE, PART_CAVITY = range(7)
+_log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -53,9 +56,25 @@ def skin_albedo(tone: float) -> np.ndarray:
     return np.exp((1.0 - t) * np.log(SKIN_LIGHT) + t * np.log(SKIN_DARK))
 
 
+def _without_cuda_driver_notice():
+    """Warp (anny's kernels) writes "Warp CUDA warning: Could not find or load the NVIDIA CUDA
+    driver…" to file descriptor 2 from native code when it starts on a machine without a GPU,
+    which is every machine f2l renders on: that line goes to the debug log (``f2l --debug-log``);
+    anything else written meanwhile still reaches the terminal."""
+    from f2l.io.native_stderr import native_stderr_lines
+
+    def handle(line: str, failed: bool) -> None:
+        if "CUDA driver" in line and not failed:
+            _log.debug("warp: %s", line.strip())
+        else:
+            print(line, file=sys.stderr)
+
+    return native_stderr_lines(handle)
+
+
 @lru_cache(maxsize=1)
 def _anny_model():
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _without_cuda_driver_notice():
         warnings.simplefilter("ignore")
         try:
             import warp
