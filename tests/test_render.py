@@ -202,6 +202,15 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     run("fit-faces", pbr / "photos", "--out", fitted, "--gt-probes", pbr / "probes", "--json", "--no-overlays")
     twin = json.loads(run("twin-geometry", fitted, "--render", pbr, "--out", twins, "--json"))
     assert twin["twins"] == 2
+    from pathlib import Path
+
+    from f2l.io.shards import iter_records
+
+    for rec in iter_records(twins):  # the true mesh seen from f2l's camera at the origin
+        meta = json.loads((pbr / "meta" / f"{Path(rec.source_path).stem}.json").read_text())
+        depth = -np.asarray(rec.points, float)[np.asarray(rec.mask)][:, 2]
+        assert rec.mask.sum() > 100
+        assert abs(np.median(depth) - meta["settings"]["camera_distance_cm"]) < 12.0
     run("estimate", fitted, "-m", "sh9", "--out", tmp_path / "est", "--json")
     run("estimate", twins, "-m", "sh9", "--out", tmp_path / "est_twin", "--json")
     text = run("eval-real", pbr, "--est", tmp_path / "est", "--est", f"true geometry={tmp_path / 'est_twin'}",
