@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from f2l.estimate.estimator import highlight_pixels
+from f2l.estimate.observation import highlight_pixels
 
 
 def test_desaturated_bright_pixels_are_flagged_and_diffuse_ones_kept():

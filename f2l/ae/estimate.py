@@ -38,9 +38,9 @@ import torch
 import torch.nn.functional as F
 
 from f2l.ae.encoding import decode_unit, rotate_columns
-from f2l.estimate.estimator import (EstimateResult, EstimationError, EstimatorConfig, FaceObservation,
-                                    _albedo_prior_nll, clipped_pixels, usable_pixels)
-from f2l.estimate.skin import skin_albedo_mean
+from f2l.estimate.estimator import EstimateResult, EstimatorConfig
+from f2l.estimate.observation import EstimationError, FaceObservation, clipped_pixels, usable_pixels
+from f2l.estimate.skin import albedo_prior_nll, skin_albedo_mean
 from f2l.estimate.sky_transport import SkyTransport
 from f2l.transport import Transport
 
@@ -85,9 +85,11 @@ class LatentSkyProblem:
         self.clip = self._clipped(obs, cfg)
 
     def _clipped(self, obs: FaceObservation, cfg: EstimatorConfig) -> dict | None:
-        """The clipped face pixels' transport and targets (f2l.estimate.estimator.clipped_pixels):
+        """The clipped face pixels' transport and targets (f2l.estimate.observation.clipped_pixels):
         clipped channels are lower bounds, the others observations."""
-        cidx = clipped_pixels(obs, cfg)
+        if not cfg.clipped_bounds:
+            return None
+        cidx = clipped_pixels(obs, cfg.clipped_level, cfg.sun_max_pixels)
         if cidx.size == 0:
             return None
         grid = self.grid
@@ -254,7 +256,7 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
             data = data + prob.clipped_term(sky, psi, rho_g) / (r.shape[1] * r.shape[2] * prob.target_scale)
         total = data + cfg.light_prior_weight * model.prior_nll_shape(zs)
         if fixed is None:
-            total = total + cfg.albedo_prior_weight * _albedo_prior_nll(rho)
+            total = total + cfg.albedo_prior_weight * albedo_prior_nll(rho)
         return total, data
 
     t_fit = time.perf_counter()

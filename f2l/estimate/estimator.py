@@ -25,32 +25,12 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from f2l.estimate.observation import (BLACK_LEVEL, CLIP_LEVEL, EstimationError, FaceObservation,  # noqa: F401
+                                      clipped_pixels, highlight_pixels, usable_pixels)
 from f2l.estimate.params import BoxTransform
-from f2l.estimate.skin import skin_albedo_gmm, skin_albedo_mean
-from f2l.lighting.grid import LatLongGrid
+from f2l.estimate.skin import _albedo_gmm_terms, albedo_prior_nll, skin_albedo_gmm, skin_albedo_mean
 from f2l.models.base import LightingModel
 from f2l.transport import Transport
-
-# Observed linear values at or above this are treated as clipped; at or below BLACK as black.
-CLIP_LEVEL = 0.99
-BLACK_LEVEL = 1e-4
-
-
-class EstimationError(ValueError):
-    """A face that cannot be estimated; the message says why."""
-
-
-@dataclass
-class FaceObservation:
-    """What the estimator needs of a face record (arrays over the N face pixels)."""
-
-    normals: np.ndarray  # (N, 3) unit
-    observed_rgb: np.ndarray  # (N, 3) linear
-    mask: np.ndarray  # (N,) bool
-    visibility_bits: np.ndarray  # (N, ceil(L/8)) uint8
-    grid: LatLongGrid
-    face_id: str = ""
-
 
 @dataclass
 class EstimatorConfig:
@@ -127,82 +107,6 @@ class EstimateResult:
     timings: dict = field(default_factory=dict)
     start_losses: list = field(default_factory=list)
     num_pixels_used: int = 0
-
-
-def highlight_pixels(rgb: np.ndarray, mad_factor: float) -> np.ndarray:
-    """Which pixels look like a specular highlight (boolean (N,)): brighter than the median and
-    less saturated than the face's median saturation by more than ``mad_factor`` robust standard
-    deviations (1.4826 MAD). Dichromatic reflection (Shafer 1985): skin's diffuse colour is
-    saturated, and a specular lobe adds the light's own, nearly grey, colour on top of it.
-    Saturation is 1 − 3 min(r, g, b) / (r + g + b)."""
-    v = np.asarray(rgb, dtype=np.float64)
-    total = v.sum(axis=1)
-    saturation = 1.0 - 3.0 * v.min(axis=1) / np.maximum(total, 1e-12)
-    median = np.median(saturation)
-    spread = 1.4826 * np.median(np.abs(saturation - median))
-    return (saturation < median - mad_factor * spread) & (total > np.median(total))
-
-
-def clipped_pixels(obs: FaceObservation, cfg: "EstimatorConfig") -> np.ndarray:
-    """Indices of the clipped face pixels sun models read as censored observations (empty unless
-    ``cfg.clipped_bounds``): outside the mask, finite, some but not all channels at or above
-    ``cfg.clipped_level``; evenly thinned to half of ``cfg.sun_max_pixels``."""
-    if not cfg.clipped_bounds:
-        return np.zeros(0, dtype=np.int64)
-    rgb = np.asarray(obs.observed_rgb, np.float64)
-    finite = np.isfinite(rgb).all(1)
-    level = cfg.clipped_level
-    candidates = ~np.asarray(obs.mask, bool) & finite & (np.where(finite[:, None], rgb, 0.0).max(1) >= level) \
-        & (np.where(finite[:, None], rgb, np.inf).min(1) < level)
-    cidx = np.flatnonzero(candidates)
-    limit = max(1, (cfg.sun_max_pixels or cidx.size) // 2)
-    if cidx.size > limit:
-        cidx = cidx[np.round(np.linspace(0, cidx.size - 1, limit)).astype(np.int64)]
-    return cidx
-
-
-def usable_pixels(obs: FaceObservation, highlight_mad: float | None = None) -> np.ndarray:
-    """Indices of pixels usable for fitting; raises EstimationError with counts when none are.
-
-    With ``highlight_mad`` the pixels :func:`highlight_pixels` flags among the usable ones are
-    left out too (``EstimatorConfig.highlight_mad``)."""
-    rgb = np.asarray(obs.observed_rgb)
-    n = rgb.shape[0]
-    if n == 0:
-        raise EstimationError("face has no pixels")
-    finite = np.isfinite(rgb).all(1) & np.isfinite(obs.normals).all(1)
-    if not finite.all():
-        raise EstimationError(f"non-finite values in {int((~finite).sum())} of {n} pixels (NaN/inf in record)")
-    clipped = (rgb >= CLIP_LEVEL).any(1)
-    black = (rgb <= BLACK_LEVEL).all(1)
-    keep = np.asarray(obs.mask, dtype=bool) & ~clipped & ~black
-    if highlight_mad is not None and keep.sum() >= 100:
-        candidates = np.flatnonzero(keep)
-        keep[candidates[highlight_pixels(rgb[candidates], highlight_mad)]] = False
-    if keep.sum() < 50:
-        raise EstimationError(
-            f"only {int(keep.sum())} usable pixels of {n} ({int(clipped.sum())} clipped, {int(black.sum())} black, "
-            f"{int((~np.asarray(obs.mask, bool)).sum())} masked out): all-black or fully clipped face"
-        )
-    return np.flatnonzero(keep)
-
-
-@lru_cache(maxsize=1)
-def _albedo_gmm_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(log-normaliser (K,), means (K,3), precisions (K,3,3)) of the skin-albedo GMM."""
-    gmm = skin_albedo_gmm()
-    covs = gmm["covariances"]
-    precs = np.linalg.inv(covs)
-    lognorm = np.log(gmm["weights"]) - 0.5 * np.linalg.slogdet(covs)[1] - 1.5 * np.log(2 * np.pi)
-    return lognorm, gmm["means"], precs
-
-
-def _albedo_prior_nll(rho: torch.Tensor) -> torch.Tensor:
-    """Skin-albedo GMM negative log-likelihood of log(rho), rho (B, 3)."""
-    lognorm, means, precs = (torch.as_tensor(a, dtype=rho.dtype) for a in _albedo_gmm_terms())
-    d = torch.log(rho.clamp_min(1e-6))[:, None, :] - means[None]  # (B, K, 3)
-    maha = torch.einsum("bki,kij,bkj->bk", d, precs, d)
-    return -torch.logsumexp(lognorm[None] - 0.5 * maha, dim=1)
 
 
 class _Problem:
@@ -284,8 +188,8 @@ class _Problem:
         predicted))), and its other channels are ordinary observations. Skin clips in red first,
         so the green and blue of the pixels facing the sun — the ones that place it — come back."""
         self.clip_hybrid = None
-        cidx = clipped_pixels(obs, cfg)
-        if cidx.size == 0:
+        cidx = clipped_pixels(obs, cfg.clipped_level, cfg.sun_max_pixels) if cfg.clipped_bounds else []
+        if len(cidx) == 0:
             return
         rgb = np.asarray(obs.observed_rgb, np.float64)
         from f2l.estimate.sky_transport import SkyTransport
@@ -359,7 +263,7 @@ class _Problem:
             z = (params[:, self.model.sun_layout["elevation"]] - el0) / sigma
             total = total + cfg.sun_prior_weight * 0.5 * z * z
         if cfg.fixed_albedo is None:
-            total = total + cfg.albedo_prior_weight * _albedo_prior_nll(albedo)
+            total = total + cfg.albedo_prior_weight * albedo_prior_nll(albedo)
         if cfg.negativity_weight > 0 and not self.sky:
             if self.linear:
                 rad = torch.einsum("lk,bkc->blc", self.neg_basis, params.reshape(params.shape[0], -1, 3))
@@ -612,7 +516,7 @@ def _estimate_linear_fit(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_s
         converged = its < iters
         if cfg.fixed_albedo is None and round_ == 0:
             rho = linear.solve_albedo(model, psi, rho, cfg.light_prior_weight, cfg.albedo_prior_weight,
-                                      _albedo_prior_nll, _albedo_gmm_terms())
+                                      albedo_prior_nll, _albedo_gmm_terms())
     theta = (psi / rho[None, :]).reshape(-1)
     dtype = prob.dtype
     with torch.no_grad():

@@ -145,6 +145,26 @@ def skin_albedo_mean() -> np.ndarray:
     return np.exp((g["weights"][:, None] * g["means"]).sum(0))
 
 
+@lru_cache(maxsize=1)
+def _albedo_gmm_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(log-normaliser (K,), means (K,3), precisions (K,3,3)) of the skin-albedo GMM."""
+    gmm = skin_albedo_gmm()
+    covs = gmm["covariances"]
+    precs = np.linalg.inv(covs)
+    lognorm = np.log(gmm["weights"]) - 0.5 * np.linalg.slogdet(covs)[1] - 1.5 * np.log(2 * np.pi)
+    return lognorm, gmm["means"], precs
+
+
+def albedo_prior_nll(rho):
+    """Skin-albedo GMM negative log-likelihood of log(rho), rho (B, 3) torch (psi_rho, paper §3.2)."""
+    import torch
+
+    lognorm, means, precs = (torch.as_tensor(a, dtype=rho.dtype) for a in _albedo_gmm_terms())
+    d = torch.log(rho.clamp_min(1e-6))[:, None, :] - means[None]  # (B, K, 3)
+    maha = torch.einsum("bki,kij,bkj->bk", d, precs, d)
+    return -torch.logsumexp(lognorm[None] - 0.5 * maha, dim=1)
+
+
 if __name__ == "__main__":  # regenerate the shipped table
     TABLE_FILE.parent.mkdir(parents=True, exist_ok=True)
     payload = {
