@@ -76,7 +76,7 @@ def pipeline(scene_hi, tmp_path_factory):
                   full_scale_radiance=fs, read_noise_dn=2.0, seed=7)
     (root / "site" / "session.toml").write_text(SESSION_TOML)
     ingest = json.loads(run("ingest", root, "--work", work, "--json").stdout)
-    probes = json.loads(run("make-probes", root, "--work", work, "--json").stdout)
+    probes = json.loads(run("make-probes", root, "--work", work, "--probe-height", GRID.height, "--json").stdout)
     return root, work, ingest, probes, fs
 
 
@@ -156,8 +156,9 @@ def test_downsample_view_preserves_radiance_and_flags_blocks():
 def test_bench_capture_runs_the_real_stages(compression):
     from f2l.capture.bench import format_table, run_capture_bench
 
-    (row,) = run_capture_bench((1,), frames=2, megapixels=0.05, repeat=1, compression=compression)
-    assert row["files"] == 2 and row["compression"] == compression and row["decode_s"] > 0 and row["ingest_s"] > 0 and row["merge_s"] > 0
+    (row,) = run_capture_bench((2,), frames=3, megapixels=0.05, repeat=1, compression=compression)
+    assert row["brackets_found"] == 2  # two brackets in one folder, split by ingest
+    assert row["files"] == 6 and row["compression"] == compression and row["decode_s"] > 0 and row["ingest_s"] > 0 and row["merge_s"] > 0
     assert row["ratio"] == pytest.approx((row["ingest_s"] + row["merge_s"]) / row["decode_s"])
     assert 0 < row["assembly_s"] < row["make_probes_s"]  # placed views: merged and assembled in the second run
     assert row["ratio_with_assembly"] == pytest.approx((row["ingest_s"] + row["make_probes_s"]) / row["decode_s"])

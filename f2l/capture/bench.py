@@ -2,17 +2,20 @@
 and peak memory as the number of brackets grows.
 
 A synthetic capture tree (``brackets`` × ``frames`` real DNGs of ``megapixels`` each, written by
-:func:`f2l.capture.dng.write_bracket` from a sky scene with a clipped sun; lossless-JPEG compressed
-like camera RAWs by default, or uncompressed, where the decode is little more than a file read) is timed three ways,
-each in a fresh child process so that one's memory never counts against another's:
+:func:`f2l.capture.dng.write_bracket` from a sky scene with a clipped sun, with a real camera's
+colour matrix, two brackets per session in one folder that ingest must split; lossless-JPEG
+compressed like camera RAWs by default, or uncompressed, where the decode is little more than a
+file read) is timed three ways, each in a fresh child process so that one's memory never counts
+against another's:
 
 * bare decode: ``rawpy.imread(path).raw_image_visible`` for every file (the floor);
 * ingest: ``f2l ingest`` (metadata incl. one LibRaw decode per RAW for the black/white levels,
   SHA-256, sessions and brackets; no content detection);
 * merge: ``f2l make-probes`` with no lens model for the views (one bracket in memory at a time,
   views written as EXR, nothing to assemble);
-* probes: the same after :func:`place_views` gives each session a session.toml placing its view
-  (an equidistant fisheye looking up) and a fresh ingest: merge + sphere assembly.
+* probes: the same after :func:`place_views` gives each session a session.toml placing its views
+  (equidistant fisheyes looking up) and a fresh ingest: merge, conversion to Rec.709, sphere
+  assembly (on make-probes' default 128 x 256 grid) and the sun from the views.
 
 Peak memory is the child's peak resident set size (``VmHWM``, reset after the imports through
 ``/proc/self/clear_refs``), and that peak minus the resident size right after the imports: what
@@ -50,51 +53,57 @@ with open("/proc/self/clear_refs", "w") as fh:  # reset the peak (VmHWM) after t
     fh.write("5")
 base_mib = status_mib("VmRSS")
 t0 = time.perf_counter()  # imports done: time the work only
+found = None
 if mode == "decode":
     for p in sorted(root.rglob("*.dng")):
         with rawpy.imread(str(p)) as raw:
             raw.raw_image_visible
 elif mode == "ingest":
-    run_ingest(root, work, detect_roles=False)
+    found = run_ingest(root, work, detect_roles=False).brackets
 else:  # "merge" (views unplaced: no assembly) or "probes" (placed: merge + assembly)
     summary = make_probes(root, work)
 assembly_s = sum(r["seconds"] for r in summary.rows if r["kind"] == "probe") if mode == "probes" else 0.0
 peak_mib = status_mib("VmHWM")
 print(json.dumps({"seconds": time.perf_counter() - t0, "assembly_s": assembly_s, "peak_rss_mib": peak_mib,
-                  "work_mib": peak_mib - base_mib}))
+                  "work_mib": peak_mib - base_mib, "brackets_found": found}))
 """
 
 
-_SESSION_TOML = """[lens]
-projection = "equidistant"
-fov_deg = 180.0
-[[shots]]
-files = "sky/*"
-pitch_deg = 90.0
-"""
+VIEWS_PER_SESSION = 2
 
 
 def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: int = 0,
                compression: str = "ljpeg") -> int:
-    """``brackets`` sessions of one ``frames``-frame bracket each; returns the number of files."""
+    """``brackets`` brackets of ``frames`` frames, :data:`VIEWS_PER_SESSION` per session, all of a
+    session's frames in one ``sky/`` folder (ingest splits them by time and by the restarting
+    exposure sequence, shot in auto-bracketing order 0, -, +, ...), recorded with the Canon EOS 30D's
+    colour matrix (make-probes converts to Rec.709); returns the number of files."""
+    from datetime import datetime, timedelta
+
     from f2l.capture.dng import synthetic_sky_scene, write_bracket
+    from f2l.capture.sessions import CANON_EOS_30D_XYZ_TO_CAMERA, aeb_order
 
     h = int(round(np.sqrt(megapixels * 1e6 * 3 / 4) / 2)) * 2
     w = int(round(h * 4 / 3 / 2)) * 2
     scene = synthetic_sky_scene(h, w, seed=seed)
-    exposures = [2.0 ** (2 * k - 2 * frames) for k in range(frames)]
+    exposures = [2.0 ** (ev - frames) for ev in aeb_order(frames, 2.0)]
     for b in range(brackets):
-        write_bracket(root / f"site{b:04d}" / "sky", scene, exposures, seed=seed + b,
+        site, view = divmod(b, VIEWS_PER_SESSION)
+        write_bracket(root / f"site{site:04d}" / "sky", scene, exposures, seed=seed + b,
                       full_scale_radiance=float(np.percentile(scene, 50)) * 4.0 * max(exposures) / 64,
-                      compression=compression)
+                      compression=compression, camera_matrix=np.reshape(CANON_EOS_30D_XYZ_TO_CAMERA, (3, 3)),
+                      prefix=f"v{view}", timestamp=datetime(2024, 6, 21, 12, 0, 0) + timedelta(seconds=30 * view))
     return brackets * frames
 
 
 def place_views(root: Path) -> None:
-    """Give every session of a :func:`write_tree` a session.toml placing its view (an equidistant
-    fisheye looking up): make-probes then assembles a probe per session."""
+    """Give every session of a :func:`write_tree` a session.toml placing its views (equidistant
+    fisheyes looking up, turned by 180° about the vertical from one to the next): make-probes then
+    assembles a probe per session."""
+    shots = "".join(f'[[shots]]\nfiles = "sky/v{v}_*"\nyaw_deg = {180 * v}\npitch_deg = 90.0\n'
+                    for v in range(VIEWS_PER_SESSION))
     for site in sorted(p for p in root.iterdir() if p.is_dir()):
-        (site / "session.toml").write_text(_SESSION_TOML)
+        (site / "session.toml").write_text(f'[lens]\nprojection = "equidistant"\nfov_deg = 180.0\n\n{shots}')
 
 
 def _child(mode: str, root: Path, work: Path) -> dict:
@@ -131,7 +140,7 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
                 keep("probes", _child("probes", root, work))
             d, i, m = (best[k]["seconds"] for k in ("decode", "ingest", "merge"))
             p, a = best["probes"]["seconds"], best["probes"]["assembly_s"]
-            rows.append({"brackets": n, "files": files, "megapixels": megapixels, "compression": compression,
+            rows.append({"brackets": n, "brackets_found": best["ingest"]["brackets_found"], "files": files, "megapixels": megapixels, "compression": compression,
                          "decode_s": d, "ingest_s": i, "merge_s": m, "make_probes_s": p, "assembly_s": a,
                          "ratio": (i + m) / d if d > 0 else float("inf"),
                          "ratio_with_assembly": (i + p) / d if d > 0 else float("inf"),
@@ -142,14 +151,14 @@ def run_capture_bench(sizes=(2, 8), frames: int = 5, megapixels: float = 2.0,
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = ["| brackets | files | MP/file | DNG | bare decode s | ingest s | merge s | (ingest+merge)/decode "
+    lines = ["| brackets (ingest found) | files | MP/file | DNG | bare decode s | ingest s | merge s | (ingest+merge)/decode "
              "| make-probes with assembly s (assembly) | (ingest+make-probes)/decode | files/s "
              "| peak MiB decode / ingest / merge / with assembly "
              "| above imports MiB decode / ingest / merge / with assembly |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, q = r["peak_mib"], r["work_mib"]
-        lines.append(f"| {r['brackets']} | {r['files']} | {r['megapixels']:.1f} | {r['compression']} | {r['decode_s']:.2f} "
+        lines.append(f"| {r['brackets']} ({r['brackets_found']}) | {r['files']} | {r['megapixels']:.1f} | {r['compression']} | {r['decode_s']:.2f} "
                      f"| {r['ingest_s']:.2f} | {r['merge_s']:.2f} | {r['ratio']:.2f}x "
                      f"| {r['make_probes_s']:.2f} ({r['assembly_s']:.2f}) | {r['ratio_with_assembly']:.2f}x "
                      f"| {r['files_per_s']:.1f} | {p['decode']} / {p['ingest']} / {p['merge']} / {p['probes']} "

@@ -41,6 +41,9 @@ def _print_summary(summary) -> None:
                + (" (nothing to do)" if summary.read == 0 else ""))
     typer.echo("status: " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items()))
     typer.echo("roles:  " + ", ".join(f"{k} {v}" for k, v in summary.by_role.items()))
+    for problem in summary.session_problems:
+        typer.echo(f"f2l: warning: {problem}", err=True)
+    _print_brackets(summary.bracket_list)
     rows = pq.read_table(summary.table, columns=["status", "message"]).to_pylist()
     problems = [r["message"] for r in rows if r["status"] != "ok"]
     for message in problems[:20]:
@@ -49,23 +52,51 @@ def _print_summary(summary) -> None:
         typer.echo(f"  ... and {len(problems) - 20} more (see the status column)")
 
 
+def _print_brackets(brackets: list[dict], limit: int = 40) -> None:
+    """One line per bracket: frames, EV100 range and the view it was split by."""
+    if not brackets:
+        return
+    typer.echo("brackets:")
+    for b in brackets[:limit]:
+        view = ", ".join(f"{k[:-4]} {v:g}°" for k, v in b["view"].items()) or "no orientation given"
+        ev = "" if b["ev100_min"] is None else f", EV100 {b['ev100_min']:.1f}..{b['ev100_max']:.1f}"
+        typer.echo(f"  {b['bracket_id']}: {b['frames']} frames{ev}; {view}")
+    if len(brackets) > limit:
+        typer.echo(f"  ... and {len(brackets) - limit} more")
+
+
+def session_problems(work: Path) -> list[str]:
+    """Distinct "session: why its session.toml was not used" lines of WORK/captures.parquet."""
+    import pyarrow.parquet as pq
+
+    table = work / "captures.parquet"
+    if not table.is_file():
+        return []
+    names = pq.read_schema(table).names
+    if "session_problem" not in names:
+        return []
+    rows = pq.read_table(table, columns=["session", "session_problem"]).to_pylist()
+    return sorted({f"session {r['session']}: {r['session_problem']}" for r in rows if r["session_problem"]})
+
+
 def make_probes_cmd(
     root: Path = typer.Argument(..., help="The capture tree given to `f2l ingest`."),
     work: Path = typer.Option(Path("work"), "--work", help="Work folder holding captures.parquet; views/, probes/ and probes.parquet go here."),
-    grid: str = typer.Option("64x128", help="Probe grid HxW."),
+    probe_height: int = typer.Option(128, "--probe-height", min=8, help="Probe rows (lat-long, width 2x): 128 is 1.4° per texel."),
     view_max_side: int = typer.Option(1024, help="Merged views are box-averaged to at most this many px per side before they are written and assembled."),
+    colour: str = typer.Option("rec709", "--colour", help="rec709: linear Rec.709 through the camera's colour matrix (DNG ColorMatrix, else LibRaw's table); camera: camera RGB."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe."""
-    from f2l.capture.probes import make_probes
+    from f2l.capture.probes import COLOUR_SPACES, make_probes
 
+    if colour not in COLOUR_SPACES:
+        raise typer.BadParameter(f"expected one of {', '.join(COLOUR_SPACES)}", param_hint="--colour")
+    for problem in session_problems(work):
+        typer.echo(f"f2l: warning: {problem} (session ingested without it)", err=True)
     try:
-        h, w = (int(v) for v in grid.lower().split("x"))
-    except ValueError:
-        raise typer.BadParameter("expected HxW, e.g. 64x128", param_hint="--grid")
-    try:
-        summary = make_probes(root, work, grid_height=h, grid_width=w,
-                              view_max_side=view_max_side, progress=not json_out)
+        summary = make_probes(root, work, grid_height=probe_height, view_max_side=view_max_side,
+                              colour_space=colour, progress=not json_out)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)

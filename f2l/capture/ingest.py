@@ -3,7 +3,7 @@
 What a row says about a file, and how it is decided:
 
 * **kind** from the extension: camera RAW (anything LibRaw opens: CR2, CR3, NEF, ARW, DNG, ...),
-  ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``).
+  ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``, PFM).
 * **metadata**: RAW through :func:`f2l.capture.raw_meta.read_raw_metadata` (exifread; levels and
   CFA from the tags of a DNG that states them completely, else one LibRaw decode, because LibRaw
   reports black/white levels and the CFA only after unpacking: a Canon's black level is measured
@@ -20,11 +20,17 @@ What a row says about a file, and how it is decided:
   embedded thumbnail, or the image itself), a chart when the chart detector does, else
   ``other``.
 * **brackets**: frames of one bracket share ``bracket_id`` (``<session>/<first frame stem>``).
+  A bracket never mixes views: frames within ``bracket_gap_s`` of each other are split where the
+  session TOML's view (orientation, lens) changes, where an exposure repeats (the sequence
+  restarted) and where the capture time jumps (:func:`split_brackets`), so a panoramic head's
+  views in one folder become one bracket each.
   In a bracket folder, a run of one frame is ``skipped`` (nothing to merge) and a run that mixes
   cameras or frame sizes is an ``error`` naming both; the rest of the folder is unaffected.
-* **session TOML** (``session.toml`` in the session folder, schema ``session``): lens projection,
-  field of view, vignetting, per-shot yaw/pitch/roll, probe azimuth; stored per row in
-  ``view_json``. An invalid TOML is reported on every row of its session, which is then ingested
+* **session TOML** (``session.toml`` in the session folder, schema ``session``): lens
+  (:mod:`f2l.capture.lens`), fall-off, per-shot yaw/pitch/roll, probe azimuth; stored per row in
+  ``view_json`` (a flat-field file as a path relative to the capture root, with its SHA-256). An
+  invalid TOML is reported, with its file and key, in the summary (``session_problems``, printed
+  by the CLI) and in ``session_problem`` of every row of its session, which is then ingested
   without it.
 
 Incremental: ``WORK/captures.parquet`` from an earlier run is read first; a file whose relative
@@ -36,6 +42,7 @@ recomputed from the rows every time (cheap). The table is written atomically.
 from __future__ import annotations
 
 import fnmatch
+import json
 import logging
 import math
 import os
@@ -46,12 +53,12 @@ from pathlib import Path
 
 import numpy as np
 
-INGEST_VERSION = 1
+INGEST_VERSION = 2  # 2: session_problem column, brackets split by view, exposure restart and time jump
 RAW_EXTENSIONS = {".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".iiq", ".k25",
                   ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw",
                   ".rw2", ".rwl", ".sr2", ".srf", ".srw", ".x3f"}
 IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
-HDR_EXTENSIONS = {".exr", ".hdr"}
+HDR_EXTENSIONS = {".exr", ".hdr", ".pfm"}
 ROLE_FOLDERS = {  # folder name (lower case) -> role
     **dict.fromkeys(["sky", "skies", "bracket", "brackets", "hdr", "sphere", "spheres", "fisheye",
                      "env", "environment"], "sky_bracket"),
@@ -75,6 +82,8 @@ class IngestSummary:
     by_role: dict = field(default_factory=dict)
     sessions: int = 0
     brackets: int = 0
+    session_problems: list = field(default_factory=list)  # "session: why its session.toml was not used"
+    bracket_list: list = field(default_factory=list)  # one dict per bracket (bracket_summary)
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -187,6 +196,15 @@ def _hdr_meta(path: Path) -> dict:
             (x0, y0), (x1, y1) = f.header()["dataWindow"]
         out["width"], out["height"] = int(x1 - x0 + 1), int(y1 - y0 + 1)
         return out
+    if path.suffix.lower() == ".pfm":  # "PF" / "Pf", then "W H" (OpenImageIO reads the header only)
+        import OpenImageIO as oiio
+
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise ValueError(f"not a readable PFM file ({oiio.geterror()})")
+        out["width"], out["height"] = int(inp.spec().width), int(inp.spec().height)
+        inp.close()
+        return out
     with open(path, "rb") as fh:  # Radiance: text header, blank line, "-Y H +X W"
         head = fh.read(65536)
     lines = head.split(b"\n")
@@ -282,7 +300,7 @@ def _folder_role(rel: Path) -> str | None:
 
 def load_session_toml(folder: Path) -> tuple[dict, str]:
     """(config, problem): the folder's session.toml validated against schema ``session``;
-    ({}, "") when there is none, ({}, reason) when it is invalid."""
+    ({}, "") when there is none, ({}, reason naming the file and key) when it is invalid."""
     import jsonschema
 
     from f2l.io.schema import load_schema
@@ -297,8 +315,22 @@ def load_session_toml(folder: Path) -> tuple[dict, str]:
         return {}, f"{path}: not valid TOML ({exc})"
     except jsonschema.ValidationError as exc:
         where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        return {}, f"{path}: {where}: {exc.message}"
+        return {}, f"{path}: {where}: {exc.message}{_toml_hint(exc)}"
     return config, ""
+
+
+_TOP_LEVEL_KEYS = ("probe_azimuth_deg", "timezone", "lens", "shots")
+
+
+def _toml_hint(exc) -> str:
+    """Why a top-level key can land inside a table: TOML gives a key after ``[[shots]]`` or
+    ``[lens]`` to that table."""
+    path = list(exc.absolute_path)
+    stray = [k for k in _TOP_LEVEL_KEYS if f"'{k}'" in exc.message]
+    if path and path[0] in ("shots", "lens") and stray:
+        return (f" ({stray[0]} is a top-level key: in TOML a key written after a [{path[0]}] table belongs to "
+                f"that table; move it above the first table)")
+    return ""
 
 
 def view_for(config: dict, rel_in_session: str) -> dict:
@@ -346,6 +378,60 @@ def _exposure(r: dict) -> float | None:
     return r["exposure_s"] * r["iso"] / r["f_number"] ** 2
 
 
+JUMP_MIN_S = 3.0
+JUMP_FACTOR = 4.0
+"""Within a run, a pause longer than max(JUMP_MIN_S, JUMP_FACTOR x the run's median pause) between
+frames (capture-time difference less the earlier frame's exposure time) starts a new bracket."""
+
+
+def _view_key(r: dict) -> str:
+    """What places a frame: its session TOML view (orientation, lens), less role and probe azimuth."""
+    view = json.loads(r["view_json"] or "{}")
+    for k in ("role", "probe_azimuth_deg"):
+        view.pop(k, None)
+    return json.dumps(view, sort_keys=True)
+
+
+def _stop(r: dict) -> float | None:
+    e = _exposure(r)
+    return None if not e else round(3.0 * math.log2(e)) / 3.0  # to the nearest 1/3 EV
+
+
+def split_brackets(run: list[dict]) -> list[list[dict]]:
+    """Split a time-ordered run of frames into brackets: a new one starts where the frame's view
+    (session TOML orientation or lens) changes, where its exposure (to 1/3 EV) already occurs in
+    the bracket (the sequence restarted), or where the capture time jumps (:data:`JUMP_FACTOR`)."""
+    pauses = [max(0.0, _capture_time(b) - _capture_time(a) - (a["exposure_s"] or 0.0)) for a, b in zip(run, run[1:])]
+    jump = max(JUMP_MIN_S, JUMP_FACTOR * float(np.median(pauses))) if pauses else 0.0
+    out: list[list[dict]] = []
+    for i, r in enumerate(run):
+        cur = out[-1] if out else None
+        if cur is not None and _view_key(r) == _view_key(cur[-1]) and pauses[i - 1] <= jump and (
+                _stop(r) is None or _stop(r) not in {_stop(x) for x in cur}):
+            cur.append(r)
+        else:
+            out.append([r])
+    return out
+
+
+def bracket_summary(rows: list[dict]) -> list[dict]:
+    """One dict per bracket of ``rows``: id, session, frames, EV100 range, camera and view (yaw,
+    pitch, roll from the session TOML), for ingest's report."""
+    by: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get("bracket_id"):
+            by.setdefault(r["bracket_id"], []).append(r)
+    out = []
+    for bid, frames in sorted(by.items()):
+        view = json.loads(frames[0]["view_json"] or "{}")
+        evs = [r["ev100"] for r in frames if r.get("ev100") is not None]
+        out.append({"bracket_id": bid, "session": frames[0]["session"], "frames": len(frames),
+                    "ev100_min": min(evs) if evs else None, "ev100_max": max(evs) if evs else None,
+                    "camera": frames[0]["camera"],
+                    "view": {k: view[k] for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in view}})
+    return out
+
+
 def assign_brackets(rows: list[dict], gap_s: float) -> int:
     """Set ``bracket_id`` / role / status on one session's frames (module doc); returns the
     number of brackets."""
@@ -353,7 +439,7 @@ def assign_brackets(rows: list[dict], gap_s: float) -> int:
     frames = [r for r in rows if r["status"] == "ok" and r["kind"] in ("raw", "image")]
     declared = [r for r in frames if r["role"] == "sky_bracket"]
     free = [r for r in frames if r["role_source"] == "none"]
-    for run in split_by_time(declared, gap_s):
+    for run in (b for run in split_by_time(declared, gap_s) for b in split_brackets(run)):
         keys = {_frame_key(r) for r in run}
         if len(keys) > 1:
             desc = "; ".join(f"{k[0] or 'unknown camera'} {k[2]}x{k[3]}" for k in sorted(keys, key=str))
@@ -364,8 +450,8 @@ def assign_brackets(rows: list[dict], gap_s: float) -> int:
         if len(run) == 1:
             r = run[0]
             r["status"], r["message"] = "skipped", (
-                f"{r['path']}: bracket of one frame (no other frame within {gap_s:g} s): "
-                f"nothing to merge")
+                f"{r['path']}: bracket of one frame (no other frame of its view within {gap_s:g} s and "
+                f"its exposure sequence): nothing to merge")
             continue
         count += 1
         bid = f"{run[0]['session']}/{Path(run[0]['path']).stem}"
@@ -376,7 +462,7 @@ def assign_brackets(rows: list[dict], gap_s: float) -> int:
         by_key: dict = {}
         for r in run:
             by_key.setdefault(_frame_key(r), []).append(r)
-        for group in by_key.values():
+        for group in (b for g in by_key.values() for b in split_brackets(g)):
             exposures = {round(math.log2(e), 1) for e in map(_exposure, group) if e}
             if len(group) >= 2 and len(exposures) >= 2 and all(_exposure(r) for r in group):
                 count += 1

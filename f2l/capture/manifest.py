@@ -40,7 +40,7 @@ def _read_row(path: Path, rel: str, kind: str, stat: os.stat_result) -> dict:
     row = {"path": rel, "sha256": "", "size_bytes": int(stat.st_size),
            "mtime_ns": int(stat.st_mtime_ns), "kind": kind, "session": "", "role": "other",
            "role_source": "none", "bracket_id": None, "status": "ok", "message": "",
-           "view_json": "{}", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
+           "view_json": "{}", "session_problem": "", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
     try:
         row.update(ing.read_file_meta(path, kind))
         row["sha256"] = file_sha256(path)
@@ -116,6 +116,19 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     return summary
 
 
+def _with_files(view: dict, root: Path, session_dir: str) -> dict:
+    """A flat-field file named in the view, as a path relative to the capture root plus its
+    SHA-256 (so a changed file changes the merge's cache key); a missing file is left to the merge
+    to report."""
+    falloff = view.get("falloff")
+    if not (isinstance(falloff, dict) and falloff.get("file")):
+        return view
+    rel = (Path(session_dir) / falloff["file"]).as_posix()
+    path = root / rel
+    view = dict(view, falloff=dict(falloff, file=rel, sha256=file_sha256(path) if path.is_file() else ""))
+    return view
+
+
 def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s: float,
             detect_roles: bool, summary: ing.IngestSummary) -> None:
     """Sessions, TOML views, roles, brackets and statuses, recomputed on every run; content
@@ -133,10 +146,13 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
         members = [r for r in rows if r["session"] == s]
         in_folder = (root / s).is_dir() and any(ing._session_of(Path(r["path"])) for r in members)
         config, problem = ing.load_session_toml(root / s if in_folder else root)
+        if problem:
+            summary.session_problems.append(f"session {s}: {problem} (session ingested without it)")
         for r in members:
             rel_in = Path(r["path"]).relative_to(s).as_posix() if in_folder else r["path"]
-            view = ing.view_for(config, rel_in)
+            view = _with_files(ing.view_for(config, rel_in), root, s if in_folder else "")
             r["view_json"] = json.dumps(view, sort_keys=True)
+            r["session_problem"] = problem
             role, source = ing._folder_role(Path(r["path"])), "folder"
             if role is None and "role" in view:
                 role, source = view["role"], "toml"
@@ -149,6 +165,7 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
                 r["status"] = "ok"
                 r["message"] = f"{problem} (session ingested without it)" if problem else ""
         summary.brackets += ing.assign_brackets(members, bracket_gap_s)
+        summary.bracket_list.extend(ing.bracket_summary(members))
         for r in members:  # content detection for what is still undecided
             if r["role_source"] != "none" or r["status"] != "ok":
                 continue

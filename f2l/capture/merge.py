@@ -111,6 +111,7 @@ class MergedHDR:
     status: str = "ok"
     warnings: list[str] = field(default_factory=list)
     scale: float = 1.0
+    xyz_to_camera: tuple[float, ...] | None = None  # the reference frame's colour matrix (see raw_meta)
     rgb_cache: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -541,6 +542,7 @@ def _merge_frames(started: BracketStart, noise, saturation_fraction, dark_dn, al
         rgb_cache=rgb, mosaic=num, saturated=saturated, saturated_fraction=float(saturated.mean()), cfa_pattern=cfa,
         colour_space=space, min_exposure_factor=factors[short_i], reference=metas[ref_i].path, frames=infos,
         status="moved" if any(f.moved for f in infos) else "ok", warnings=warnings,
+        xyz_to_camera=metas[ref_i].xyz_to_camera,
     )  # fmt: skip
 
 

@@ -4,24 +4,24 @@ probe per session (``f2l make-probes``).
 For each ``bracket_id`` of ``WORK/captures.parquet`` (frames with status ok), in path order:
 
 1. :func:`f2l.capture.merge.merge_bracket` in the RAW domain (one bracket in memory at a time),
-   vignetting divided out, then box-averaged by an integer factor to at most ``view_max_side``
-   px (radiance-preserving; a block is saturated if any of its pixels is; 1024 px keeps ~0.2°
-   per pixel on a 180° fisheye, 14× finer than a 64 × 128 probe texel), written to
-   ``WORK/views/<bracket>.exr`` (float32 camera RGB; 1.0 = full scale at EV100 0) with its
-   saturated mask ``WORK/views/<bracket>.saturated.png``. Only these small views stay in
+   box-averaged by an integer factor to at most ``view_max_side`` px (radiance-preserving; a block
+   is saturated if any of its pixels is; 1024 px keeps ~0.2° per pixel on a 180° fisheye),
+   converted to linear Rec.709 with the camera's colour matrix (:class:`ViewOptions`), its
+   fall-off divided out, written to ``WORK/views/<bracket>.exr`` (float32; 1.0 = full scale at
+   EV100 0; ``chromaticities`` and ``f2l_view_from_frame`` = "W H k crop_x crop_y" in the header)
+   with its saturated mask ``WORK/views/<bracket>.saturated.png``. Only these small views stay in
    memory until their session is assembled;
-2. the view's lens and orientation from the row's ``view_json`` (the session TOML): projection
-   (``equidistant`` / ``equisolid`` fisheye, ``rectilinear``), ``fov_deg``, ``yaw_deg``,
-   ``pitch_deg``, ``roll_deg``, ``vignetting`` (divided out). A bracket without a lens model
-   cannot be placed on the sphere and is reported, not guessed.
+2. the view's lens, fall-off and orientation from the row's ``view_json`` (the session TOML,
+   :mod:`f2l.capture.lens`), mapped from the full frame to the box-averaged view. A bracket
+   without a lens cannot be placed on the sphere and is reported (``unplaced``), not guessed.
 
 Then per session, :func:`f2l.capture.sphere.assemble` blends the session's placed views into
-``WORK/probes/<session>.exr`` (DESIGN lat-long convention, float32) with the coverage mask
-``WORK/probes/<session>.coverage.png`` (white = seen; the rest, e.g. the ground under an
-up-looking fisheye, is 0 in the probe and never invented). ``WORK/probes.parquet`` (schema
-``probes``) has one row per bracket and per session probe. Already-merged probes (role
-``probe``) are listed with their path. Values stay in camera RGB: colour calibration
-(:mod:`f2l.colour`) maps them to Rec.709.
+``WORK/probes/<session>.exr`` (DESIGN lat-long convention, float32, default 128 x 256) with the
+coverage mask ``WORK/probes/<session>.coverage.png`` (white = seen; the rest, e.g. the ground under
+an up-looking fisheye, is 0 in the probe and never invented). The sun's direction comes from the
+views (:func:`view_sun`), sub-texel. ``WORK/probes.parquet`` (schema ``probes``) has one row per
+bracket and per session probe, a ``skipped`` row saying what a session without a probe lacks, and
+the already-merged probes (role ``probe``) with their path.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-PROJECTIONS = ("equidistant", "equisolid", "rectilinear")
+COLOUR_SPACES = ("rec709", "camera")
 
 
 @dataclass
@@ -57,23 +57,19 @@ class ProbesSummary:
         return out
 
 
-def camera_for(view: dict, width: int, height: int):
-    """The :class:`~f2l.capture.cameras.ViewCamera` a row's ``view_json`` describes (ValueError
-    naming what is missing)."""
-    from f2l.capture.cameras import ViewCamera
+def camera_for(view: dict, width: int, height: int, *, frame: tuple | None = None,
+               exif_focal_mm: float | None = None):
+    """The :class:`~f2l.capture.cameras.ViewCamera` a row's ``view_json`` describes for a view of
+    ``width`` x ``height`` px (:mod:`f2l.capture.lens`; ValueError naming what is missing).
 
-    projection = view.get("projection")
-    if projection not in PROJECTIONS:
-        raise ValueError(f"no usable lens projection (got {projection!r}; session.toml [lens] "
-                         f"projection must be one of {', '.join(PROJECTIONS)})")
-    if "fov_deg" not in view:
-        raise ValueError("no field of view (session.toml [lens] fov_deg)")
-    pose = {k: float(view.get(k, 0.0)) for k in ("yaw_deg", "pitch_deg", "roll_deg")}
-    fov = float(view["fov_deg"])
-    if projection == "rectilinear":
-        return ViewCamera.pinhole(fov, width, height, **pose)
-    make = ViewCamera.equidistant if projection == "equidistant" else ViewCamera.equisolid
-    return make(fov, width, height, **pose)
+    ``frame``: (full-frame width, height, k, crop_x, crop_y) when the view was box-averaged by k
+    after a centred crop (:func:`downsample_view`); None: the view is the full frame."""
+    from f2l.capture.lens import lens_from_view
+
+    fw, fh, k, cx, cy = frame if frame is not None else (width, height, 1, 0, 0)
+    pose = {key: float(view.get(key, 0.0)) for key in ("yaw_deg", "pitch_deg", "roll_deg")}
+    return lens_from_view(view, int(fw), int(fh), exif_focal_mm).view_camera(width, height, int(k), int(cx), int(cy),
+                                                                             **pose)
 
 
 def _write_mask_png(path: Path, mask: np.ndarray) -> None:
@@ -99,9 +95,15 @@ def _safe(name: str) -> str:
 def _row(kind: str, name: str, session: str, status: str, message: str, **kw) -> dict:
     row = {"kind": kind, "name": name, "session": session, "status": status, "message": message,
            "path": None, "frames": 0, "saturated_fraction": None, "coverage_fraction": None,
-           "sun_elevation_deg": None, "sun_azimuth_deg": None, "seconds": 0.0}
+           "sun_elevation_deg": None, "sun_azimuth_deg": None, "colour_space": None, "seconds": 0.0}
     row.update(kw)
     return row
+
+
+def downsample_plan(height: int, width: int, max_side: int) -> tuple[int, int, int]:
+    """(k, crop_y, crop_x) of :func:`downsample_view` for a frame of ``height`` x ``width``."""
+    k = max(1, -(-max(height, width) // int(max_side)))
+    return k, (height - height // k * k) // 2, (width - width // k * k) // 2
 
 
 def downsample_view(rgb: np.ndarray, saturated: np.ndarray, max_side: int):
@@ -111,11 +113,10 @@ def downsample_view(rgb: np.ndarray, saturated: np.ndarray, max_side: int):
     The k * k strided sub-images are summed in float32 (k * k terms of one sign: relative error
     below k * k * 6e-8), 25x faster than a float64 ``mean`` over a reshaped view."""
     h, w = rgb.shape[:2]
-    k = max(1, -(-max(h, w) // int(max_side)))
+    k, r0, c0 = downsample_plan(h, w, max_side)
     if k == 1:
         return rgb, saturated
     hh, ww = h // k * k, w // k * k
-    r0, c0 = (h - hh) // 2, (w - ww) // 2
     crop, sat = rgb[r0:r0 + hh, c0:c0 + ww], saturated[r0:r0 + hh, c0:c0 + ww]
     total, flag = np.zeros((hh // k, ww // k, 3), np.float32), np.zeros((hh // k, ww // k), bool)
     for a in range(k):
@@ -126,10 +127,24 @@ def downsample_view(rgb: np.ndarray, saturated: np.ndarray, max_side: int):
     return total, flag
 
 
-def _merge_one(root: Path, work: Path, bid: str, frames: list[dict],
-               view_max_side: int) -> tuple[dict, object | None]:
+@dataclass(frozen=True)
+class ViewOptions:
+    """How a merged bracket becomes a view: box-averaged to at most ``view_max_side`` px;
+    ``colour_space`` "rec709" (the camera's colour matrix, DNG ColorMatrix or LibRaw's table) or
+    "camera" (camera RGB kept); ``root``: the capture root (flat-field files are relative to it)."""
+
+    view_max_side: int = 1024
+    colour_space: str = "rec709"
+    root: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.colour_space not in COLOUR_SPACES:
+            raise ValueError(f"colour space must be one of {', '.join(COLOUR_SPACES)}, got {self.colour_space!r}")
+
+
+def _merge_one(root: Path, work: Path, bid: str, frames: list[dict], opts: ViewOptions) -> tuple[dict, object | None]:
     """Merge one bracket → (row, placed view or None)."""
-    return _finish_one(work, bid, frames, view_max_side, *_merge_frames(root, bid, frames))
+    return _finish_one(work, bid, frames, opts, *_merge_frames(root, bid, frames))
 
 
 def _merge_frames(root: Path, bid: str, frames: list[dict], started=None):
@@ -144,73 +159,154 @@ def _merge_frames(root: Path, bid: str, frames: list[dict], started=None):
         return None, _row("view", bid, frames[0]["session"], "error", str(exc), frames=len(frames)), t0
 
 
-def _finish_one(work: Path, bid: str, frames: list[dict], view_max_side: int, merged, error_row,
+def _to_colour_space(rgb: np.ndarray, merged, opts: ViewOptions, warnings: list[str]) -> tuple[np.ndarray, str]:
+    from f2l.capture.raw_meta import camera_to_rec709
+
+    if opts.colour_space == "camera":
+        return rgb, "camera"
+    if merged.xyz_to_camera is None:
+        warnings.append(f"{merged.reference}: no colour matrix (neither DNG ColorMatrix nor LibRaw's table): "
+                        "left in camera RGB")
+        return rgb, "camera"
+    return camera_to_rec709(rgb, merged.xyz_to_camera), "rec709"
+
+
+def _finish_one(work: Path, bid: str, frames: list[dict], opts: ViewOptions, merged, error_row,
                 t0: float) -> tuple[dict, object | None]:
-    """Vignetting, downsampling and the view's files for a merged bracket → (row, placed view or None)."""
-    from f2l.capture.cameras import Vignetting, correct_vignetting
+    """Downsampling, colour, fall-off and the view's files for a merged bracket → (row, placed
+    view or None). The lens is read first: a view without one is written as merged (unplaced)."""
     from f2l.capture.sphere import View
-    from f2l.io.exr import write_exr
+    from f2l.io.exr import REC709_CHROMATICITIES, write_exr
 
     if merged is None:
         return error_row, None
-    session = frames[0]["session"]
-    info = json.loads(frames[0]["view_json"] or "{}")
-    rgb = merged.rgb
-    if info.get("vignetting"):
-        k = list(info["vignetting"]) + [0.0] * (3 - len(info["vignetting"]))
-        rgb = correct_vignetting(rgb, Vignetting(*k))
-    rgb, saturated = downsample_view(rgb, merged.saturated, view_max_side)
-    rel = f"views/{_safe(bid)}.exr"
-    write_exr(work / rel, rgb, metadata={"f2l_bracket": bid, "f2l_units": "camera RGB, 1.0 = full scale at EV100 0"},
-              compression="none")  # an intermediate: float32 noise leaves ZIP 5% at 15x the time
-    _write_mask_png(work / rel.replace(".exr", ".saturated.png"), saturated)
-    warnings = "; ".join(merged.warnings) if merged.warnings else ""
-    row = _row("view", bid, session, "ok", warnings, path=rel, frames=len(frames),
-               saturated_fraction=float(merged.saturated_fraction),
-               seconds=round(time.perf_counter() - t0, 3))
+    session, first = frames[0]["session"], frames[0]
+    info = json.loads(first["view_json"] or "{}")
+    full_h, full_w = merged.mosaic.shape
+    k, crop_y, crop_x = downsample_plan(full_h, full_w, opts.view_max_side)
+    rgb, saturated = downsample_view(merged.rgb, merged.saturated, opts.view_max_side)
+    warnings = list(merged.warnings)
+    rgb, space = _to_colour_space(rgb, merged, opts, warnings)
+    frame = (full_w, full_h, k, crop_x, crop_y)
+    camera, problem = None, ""
     try:
-        camera = camera_for(info, rgb.shape[1], rgb.shape[0])
+        camera = camera_for(info, rgb.shape[1], rgb.shape[0], frame=frame, exif_focal_mm=first.get("focal_length_mm"))
+        from f2l.capture.lens import lens_from_view
+
+        gain = lens_from_view(info, full_w, full_h, first.get("focal_length_mm")).gain(camera, k, crop_x, crop_y,
+                                                                                      opts.root)
+        if gain is not None:
+            rgb = rgb / gain[..., None]
     except ValueError as exc:
-        row.update(status="unplaced", message=f"{frames[0]['path']}: {exc}")
+        camera, problem = None, f"{first['path']}: {exc}"
+        if first.get("session_problem"):
+            problem += f" (session.toml was not used: {first['session_problem']})"
+    rel = f"views/{_safe(bid)}.exr"
+    units = "linear Rec.709" if space == "rec709" else "camera RGB"
+    write_exr(work / rel, rgb, metadata={"f2l_bracket": bid, "f2l_units": f"{units}, 1.0 = full scale at EV100 0",
+                                         "f2l_colour_space": space, "f2l_view_from_frame": " ".join(map(str, frame))},
+              compression="none", chromaticities=REC709_CHROMATICITIES if space == "rec709" else None)
+    _write_mask_png(work / rel.replace(".exr", ".saturated.png"), saturated)
+    row = _row("view", bid, session, "ok", "; ".join(warnings), path=rel, frames=len(frames),
+               saturated_fraction=float(merged.saturated_fraction), colour_space=space,
+               seconds=round(time.perf_counter() - t0, 3))
+    if camera is None:
+        row.update(status="unplaced", message=problem)
         return row, None
-    return row, View(image=rgb, camera=camera, saturated=saturated, name=bid)
+    view = View(image=rgb, camera=camera, saturated=saturated, name=bid)
+    _set_sun(row, [view])
+    return row, view
 
 
 def merge_bracket_view(root: str | os.PathLike, out_dir: str | os.PathLike, bracket_id: str,
-                       frames: list[dict], view_max_side: int = 1024) -> tuple[dict, object | None]:
+                       frames: list[dict], view_max_side: int = 1024,
+                       colour_space: str = "rec709") -> tuple[dict, object | None]:
     """Merge one bracket (its ``captures`` rows, any order) into ``out_dir/views/<bracket>.exr``
     and ``.saturated.png``; returns (the ``probes`` row, the placed
     :class:`~f2l.capture.sphere.View` or None when it failed or has no lens model)."""
     (Path(out_dir) / "views").mkdir(parents=True, exist_ok=True)
     frames = sorted(frames, key=lambda f: f["path"])
-    return _merge_one(Path(root), Path(out_dir), bracket_id, frames, view_max_side)
+    return _merge_one(Path(root), Path(out_dir), bracket_id, frames,
+                      ViewOptions(view_max_side, colour_space, Path(root)))
 
 
-def load_view(out_dir: str | os.PathLike, row: dict, view_json: str):
+def load_view(out_dir: str | os.PathLike, row: dict, view_json: str, exif_focal_mm: float | None = None):
     """The placed :class:`~f2l.capture.sphere.View` of a merged bracket from its files under
     ``out_dir`` (``row`` from :func:`merge_bracket_view`, status ``ok``) and the ``view_json`` of
     its frames; ValueError when the row has no lens model."""
     from f2l.capture.sphere import View
-    from f2l.io.exr import read_exr
+    from f2l.io.exr import read_exr_with_metadata
 
     out_dir = Path(out_dir)
-    rgb = read_exr(out_dir / row["path"])
+    rgb, meta = read_exr_with_metadata(out_dir / row["path"])
     saturated = _read_mask_png(out_dir / row["path"].replace(".exr", ".saturated.png"))
-    camera = camera_for(json.loads(view_json or "{}"), rgb.shape[1], rgb.shape[0])
+    frame = tuple(int(v) for v in meta["f2l_view_from_frame"].split()) if "f2l_view_from_frame" in meta else None
+    camera = camera_for(json.loads(view_json or "{}"), rgb.shape[1], rgb.shape[0], frame=frame,
+                        exif_focal_mm=exif_focal_mm)
     return View(image=rgb, camera=camera, saturated=saturated, name=row["name"])
 
 
-def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid_height: int = 64,
-                     grid_width: int = 128) -> dict:
+def view_sun(view) -> tuple[np.ndarray, float] | None:
+    """(world direction, blend weight there) of the sun in one view, or None: the centroid of the
+    largest blob saturated in every frame, else of the pixels above half the brightest pixel's
+    luminance around it (only if that peak is 100x the view's median). Sub-pixel: a few pixels'
+    error is a fraction of a probe texel."""
+    from scipy import ndimage
+
+    lum = view.image @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    valid = view.camera.valid_pixel_mask()
+    sat = np.zeros(lum.shape, bool) if view.saturated is None else view.saturated & valid
+    if sat.any():
+        labels, n = ndimage.label(sat)
+        sizes = ndimage.sum_labels(np.ones_like(lum), labels, index=np.arange(1, n + 1))
+        blob = labels == 1 + int(np.argmax(sizes))
+        weights = blob.astype(np.float64)
+    else:
+        masked = np.where(valid, lum, 0.0)
+        peak = float(masked.max())
+        median = float(np.median(lum[valid])) if valid.any() else 0.0
+        if not (peak > 0 and peak > 100.0 * median):
+            return None
+        labels, _ = ndimage.label(masked >= 0.5 * peak)
+        i, j = np.unravel_index(int(np.argmax(masked)), masked.shape)
+        blob = labels == labels[i, j]
+        weights = np.where(blob, masked, 0.0)
+    yy, xx = np.nonzero(blob)
+    w = weights[yy, xx]
+    px = np.array([[float((xx + 0.5) @ w / w.sum()), float((yy + 0.5) @ w / w.sum())]])
+    d, ok = view.camera.pixel_to_direction(px)
+    if not ok[0]:
+        return None
+    d_cam = d @ view.camera.rotation
+    return d[0], float(view.camera.blend_weight(d_cam, px)[0])
+
+
+def _set_sun(row: dict, views: list) -> None:
+    """Sun elevation/azimuth (grid convention) from the view that sees it most centrally."""
+    found = [s for s in (view_sun(v) for v in views) if s is not None]
+    if not found:
+        return
+    d = max(found, key=lambda s: s[1])[0]
+    row["sun_elevation_deg"] = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
+    row["sun_azimuth_deg"] = math.degrees(math.atan2(float(d[0]), float(-d[2])))
+
+
+def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid_height: int = 128,
+                     grid_width: int = 256, colour_spaces: list[str] | None = None) -> dict:
     """Blend one session's placed views into ``out_dir/probes/<session>.exr`` (+ coverage PNG);
-    returns its ``probes`` row (status ``error`` with the reason when assembly fails)."""
+    returns its ``probes`` row (status ``error`` with the reason when assembly fails).
+    ``colour_spaces``: each view's (views in different spaces are not blended)."""
     from f2l.capture.sphere import assemble
-    from f2l.io.exr import write_exr
+    from f2l.io.exr import REC709_CHROMATICITIES, write_exr
     from f2l.lighting.grid import LatLongGrid
-    from f2l.metrics.lighting import sun_direction
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    spaces = sorted(set(colour_spaces or ["rec709"]))
+    if len(spaces) > 1:
+        by = {sp: [v.name for v, c in zip(views, colour_spaces) if c == sp] for sp in spaces}
+        return _row("probe", session, session, "error", "views in different colour spaces ("
+                    + "; ".join(f"{sp}: {', '.join(names)}" for sp, names in by.items()) + ")")
     try:
         probe = assemble(views, grid_height, grid_width)
     except ValueError as exc:
@@ -218,32 +314,62 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
     grid = LatLongGrid(grid_height, grid_width)
     rel = f"probes/{_safe(session)}.exr"
     (out_dir / "probes").mkdir(parents=True, exist_ok=True)
-    write_exr(out_dir / rel, probe.radiance, metadata={"f2l_session": session,
-                                                       "f2l_views": str(len(views))})
+    write_exr(out_dir / rel, probe.radiance, metadata={"f2l_session": session, "f2l_views": str(len(views)),
+                                                       "f2l_colour_space": spaces[0]},
+              chromaticities=REC709_CHROMATICITIES if spaces[0] == "rec709" else None)
     _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
     sa = grid.solid_angles.reshape(grid.height, grid.width)
     coverage = float((sa * probe.coverage).sum() / sa.sum())
-    elev = azim = None
-    if probe.coverage[: grid.height // 2].any():
+    row = _row("probe", session, session, "ok", "", path=rel, frames=len(views),
+               saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
+               coverage_fraction=coverage, colour_space=spaces[0])
+    _set_sun(row, views)
+    if row["sun_elevation_deg"] is None and probe.coverage[: grid.height // 2].any():
+        from f2l.metrics.lighting import sun_direction
+
         d = sun_direction(probe.radiance, grid)
-        elev = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
-        azim = math.degrees(math.atan2(float(d[0]), float(-d[2])))
-    return _row("probe", session, session, "ok", "", path=rel, frames=len(views),
-                saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
-                coverage_fraction=coverage, sun_elevation_deg=elev, sun_azimuth_deg=azim,
-                seconds=round(time.perf_counter() - t0, 3))
+        row["sun_elevation_deg"] = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
+        row["sun_azimuth_deg"] = math.degrees(math.atan2(float(d[0]), float(-d[2])))
+    row["seconds"] = round(time.perf_counter() - t0, 3)
+    return row
 
 
-def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 64,
-                grid_width: int = 128, view_max_side: int = 1024,
+def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict]:
+    """A ``skipped`` probe row for each session with no merged bracket and no given probe, saying
+    exactly what the session lacks."""
+    done = {r["session"] for r in rows}
+    out = []
+    for session in sorted({r["session"] for r in captures} - done):
+        members = [r for r in captures if r["session"] == session]
+        sky = [r for r in members if r["role"] == "sky_bracket"]
+        lacks = []
+        if sky:
+            lacks.append("no sky bracket could be merged: " + "; ".join(sorted({r["message"] for r in sky})))
+        else:
+            lacks.append("no sky bracket: no frames in a sky/ folder or with role sky_bracket in session.toml, "
+                         "and no frames of one camera with stepped exposures")
+        views = [json.loads(r["view_json"] or "{}") for r in members]
+        if not any(("projection" in v or "colmap_model" in v) for v in views):
+            problem = next((r["session_problem"] for r in members if r.get("session_problem")), "")
+            lacks.append("session.toml was not used: " + problem if problem else
+                         "no lens description (session.toml [lens] projection or colmap_model) to place a view")
+        out.append(_row("probe", session, session, "skipped", f"session {session}: " + "; ".join(lacks)))
+    return out
+
+
+def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 128,
+                grid_width: int | None = None, view_max_side: int = 1024, colour_space: str = "rec709",
                 progress: bool = False) -> ProbesSummary:
-    """Run the merge and sphere stages for every session of ``work/captures.parquet``."""
+    """Run the merge and sphere stages for every session of ``work/captures.parquet`` (probe grid
+    ``grid_height`` x ``grid_width``, default 2 x height)."""
     import pyarrow.parquet as pq
 
     from f2l.io.tables import rows_to_table, write_table_atomic
 
     t_start = time.perf_counter()
     root, work = Path(root), Path(work)
+    grid_width = 2 * grid_height if grid_width is None else grid_width
+    opts = ViewOptions(view_max_side, colour_space, root)
     table = work / "captures.parquet"
     if not table.is_file():
         raise FileNotFoundError(f"{table}: not found (run `f2l ingest {root} --work {work}` first)")
@@ -266,6 +392,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
 
         bar = tqdm(total=len(items), desc="merge", unit="bracket")
     views: list = []
+    spaces: list = []
 
     def collect(finished) -> None:
         row, view = finished.result()
@@ -274,15 +401,17 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
         if view is not None:
             summary.views += 1
             views.append(view)
+            spaces.append(row["colour_space"])
         if bar is not None:
             bar.update(1)
 
     def assemble(session: str) -> None:
         if views:
-            row = assemble_session(session, views, work, grid_height, grid_width)
+            row = assemble_session(session, views, work, grid_height, grid_width, spaces)
             summary.rows.append(row)
             summary.probes += row["status"] == "ok"
         views.clear()
+        spaces.clear()
 
     from f2l.capture.merge import BracketStart
 
@@ -308,7 +437,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
             merged = _merge_frames(root, bid, frames, starts.pop(k))
             if pending is not None:
                 collect(pending)
-            pending = writer.submit(_finish_one, work, bid, frames, view_max_side, *merged)
+            pending = writer.submit(_finish_one, work, bid, frames, opts, *merged)
             del merged
         if pending is not None:
             collect(pending)
@@ -319,6 +448,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
         if r["role"] == "probe" and r["kind"] == "hdr":
             summary.rows.append(_row("given", r["path"], r["session"], r["status"], r["message"],
                                      path=str(root / r["path"])))
+    summary.rows.extend(_sessions_without_probe(captures, summary.rows))
     summary.errors = sum(r["status"] == "error" for r in summary.rows)
     write_table_atomic(rows_to_table(summary.rows, "probes"), work / "probes.parquet", "probes")
     summary.seconds = round(time.perf_counter() - t_start, 3)

@@ -35,7 +35,7 @@ import numpy as np
 
 __all__ = [
     "RawError", "RawMeta", "RawFrame", "raw_frame", "exif_fields", "read_raw", "read_raw_metadata",
-    "read_raw_mosaic", "bayer_mosaic", "quad_mean", "demosaic_bilinear", "camera_to_rec709", "BAYER_PATTERNS",
+    "read_raw_mosaic", "bayer_mosaic", "quad_mean", "demosaic_bilinear", "camera_to_rec709", "rec709_to_camera_matrix", "BAYER_PATTERNS",
     "XYZ_TO_REC709",
 ]  # fmt: skip
 
@@ -473,6 +473,14 @@ def quad_mean(mosaic: np.ndarray) -> np.ndarray:
     return (pair[:, 0::2] + pair[:, 1::2]) * pair.dtype.type(0.25)
 
 
+def rec709_to_camera_matrix(xyz_to_camera: np.ndarray) -> np.ndarray:
+    """(3, 3) float64 taking linear Rec.709 to camera RGB, the inverse of :func:`camera_to_rec709`'s
+    matrix: ColorMatrix scaled so D65 white (Y = 1) gives a camera neutral with maximum 1."""
+    xyz_to_camera = np.asarray(xyz_to_camera, dtype=np.float64).reshape(3, 3)
+    white = xyz_to_camera @ np.linalg.solve(XYZ_TO_REC709, np.ones(3))
+    return (xyz_to_camera / white.max()) @ np.linalg.inv(XYZ_TO_REC709)
+
+
 def camera_to_rec709(rgb: np.ndarray, xyz_to_camera: np.ndarray) -> np.ndarray:
     """Camera RGB (..., 3) -> linear Rec.709 through XYZ, float32, negatives (out of gamut) clipped.
 
@@ -480,8 +488,6 @@ def camera_to_rec709(rgb: np.ndarray, xyz_to_camera: np.ndarray) -> np.ndarray:
     maximum 1, as the DNG specification normalises ColorMatrix; no white balance is applied, so the
     result stays radiometric (a blue sky stays blue).
     """
-    xyz_to_camera = np.asarray(xyz_to_camera, dtype=np.float64).reshape(3, 3)
-    white = xyz_to_camera @ np.linalg.solve(XYZ_TO_REC709, np.ones(3))
-    matrix = (XYZ_TO_REC709 @ np.linalg.inv(xyz_to_camera / white.max())).astype(np.float32)
+    matrix = np.linalg.inv(rec709_to_camera_matrix(xyz_to_camera)).astype(np.float32)
     out = np.asarray(rgb, dtype=np.float32).reshape(-1, 3) @ matrix.T
     return np.maximum(out, 0, out=out).reshape(np.shape(rgb))

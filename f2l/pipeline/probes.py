@@ -10,8 +10,9 @@
   session's probe instead: a ``given-probe`` entry (key: its path, SHA-256 and the grid) holds
   ``probe.exr``, area-resampled to the grid when its size differs.
 
-Probes stay in the sky camera's RGB and in the session's tripod frame here; colour correction
-and the turn to the face camera's frame happen when the shards are assembled
+Probes are in linear Rec.709 from the sky camera's colour matrix (``colour_space``, default) and in
+the session's tripod frame here; the chart's refinement and the turn to the face camera's frame
+happen when the shards are assembled
 (:mod:`f2l.pipeline.assemble`). Rows carry no timings (those go to the run log) and messages no
 absolute paths.
 """
@@ -25,8 +26,8 @@ import numpy as np
 from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import SessionPlan, relative_message
 
-MERGE_VERSION = 1
-SPHERE_VERSION = 1
+MERGE_VERSION = 2  # 2: colour matrix to Rec.709, lens descriptions and fall-off models (f2l.capture.lens)
+SPHERE_VERSION = 2  # 2: sun from the views, colour space in the EXR and the row
 GIVEN_PROBE_VERSION = 1
 
 
@@ -52,19 +53,22 @@ def merge_session(cache: Cache, root: Path, plan: SessionPlan, params: dict, cou
     for bid in sorted(plan.brackets):
         frames = plan.brackets[bid]
         key = stage_key("merge", MERGE_VERSION, _bracket_inputs(bid, frames),
-                        {"view_max_side": int(params["view_max_side"])})
+                        {"view_max_side": int(params["view_max_side"]),
+                         "colour_space": params.get("colour_space", "rec709")})
 
         def produce(tmp: Path, bid=bid, frames=frames) -> dict:
             from f2l.capture.probes import merge_bracket_view
 
             t0 = time.perf_counter()
-            row, _ = merge_bracket_view(root, tmp, bid, frames, int(params["view_max_side"]))
+            row, _ = merge_bracket_view(root, tmp, bid, frames, int(params["view_max_side"]),
+                                        params.get("colour_space", "rec709"))
             timings[f"merge {bid}"] = round(time.perf_counter() - t0, 3)
             return {"row": _clean_row(row, root)}
 
         result, entry = cache.get_or_make("merge", key, produce, counts)
-        out.append({"key": key, "row": result["row"], "entry": str(entry),
-                    "view_json": sorted(frames, key=lambda f: f["path"])[0]["view_json"]})
+        first = sorted(frames, key=lambda f: f["path"])[0]
+        out.append({"key": key, "row": result["row"], "entry": str(entry), "view_json": first["view_json"],
+                    "focal_length_mm": first.get("focal_length_mm")})
     return out
 
 
@@ -85,8 +89,8 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
         from f2l.capture.probes import assemble_session, load_view
 
         t0 = time.perf_counter()
-        views = [load_view(m["entry"], m["row"], m["view_json"]) for m in placed]
-        row = assemble_session(plan.name, views, tmp, *grid_hw)
+        views = [load_view(m["entry"], m["row"], m["view_json"], m.get("focal_length_mm")) for m in placed]
+        row = assemble_session(plan.name, views, tmp, *grid_hw, [m["row"].get("colour_space") for m in placed])
         timings[f"sphere {plan.name}"] = round(time.perf_counter() - t0, 3)
         return {"row": {k: v for k, v in row.items() if k != "seconds"}}
 

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from f2l.pipeline import assemble, card, faces, probes
-from f2l.pipeline.plan import plan_sessions
+from f2l.pipeline.plan import plan_sessions, relative_message
 from f2l.pipeline.publish import CARD_NAME, publish, up_to_date
 
 
@@ -139,6 +139,10 @@ def _probes_and_charts(cache, root, spec, sessions, counts, timings, left_out, w
     """{session: {"probe", "sky_camera", "charts", "brackets_ok"}}."""
     state = {}
     for plan in sessions:
+        rows = plan.faces + plan.charts + plan.given_probes + [f for fr in plan.brackets.values() for f in fr]
+        problems = sorted({r.get("session_problem") or "" for r in rows} - {""})
+        for problem in problems:
+            warnings.append(f"session {plan.name}: session.toml not used: {relative_message(problem, root)}")
         probe, sky_camera, n_ok = _session_probe(cache, root, plan, spec, counts, timings,
                                                  left_out, warnings)
         charts = [faces.calibrate_chart(cache, root, row, spec.params("calibrate"),
@@ -186,7 +190,7 @@ def _pair(cache, spec, sessions, state, fits, counts, left_out, warnings):
             if st["sky_camera"] is None:
                 chart, note = None, "a given probe is used as it is (its colour space is its own)"
             elif not calib.get("correct_probe", False):
-                chart, note = None, "correct_probe = false in the pipeline: sky camera RGB kept"
+                chart, note = None, "correct_probe = false in the pipeline: the probe is kept as merged"
             else:
                 chart, note = assemble.pick_correction(st["charts"], st["sky_camera"])
             st["gt"] = assemble.gt_probe(cache, plan.name, st["probe"], chart, note,

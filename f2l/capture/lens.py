@@ -1,0 +1,260 @@
+"""Lens descriptions a photographer can write (``session.toml`` ``[lens]``, overridable per
+``[[shots]]``) → a placed :class:`~f2l.capture.cameras.ViewCamera` and a fall-off gain.
+
+Every pixel quantity is in the **full frame** (the RAW's visible size, COLMAP pixel coordinates:
+x right, y down, pixel (i, j) spans [j, j+1] × [i, i+1]); :meth:`Lens.view_camera` maps them to a
+merged view that was box-averaged by ``k`` after a centred crop (``x_view = (x - crop_x) / k``).
+
+Geometry, one of
+- ``colmap_model`` + ``colmap_params`` (pycolmap's order, full-frame pixels; e.g. OPENCV_FISHEYE
+  fx, fy, cx, cy, k1..k4), with an optional ``max_angle_deg`` (the image circle of a fisheye);
+- ``projection`` ``equidistant`` (r = f θ), ``equisolid`` (r = 2 f sin(θ/2)) or ``rectilinear``
+  (r = f tan θ) with the focal length as ``focal_length_px``, or ``focal_length_mm`` with
+  ``sensor_width_mm`` (the frame's width; pixels are square), or EXIF FocalLength with
+  ``sensor_width_mm``, or ``fov_deg`` (across the image circle for a fisheye, across the image
+  width for rectilinear); ``principal_point_px`` [cx, cy] (default: the frame centre);
+  for a fisheye ``image_circle_radius_px``. Fisheye rules: focal + circle → the circle's half
+  angle θ_max = r⁻¹(radius); fov + circle → the focal length; focal + fov → the circle; fov alone →
+  a circle that spans the short side (f2l's earlier default); focal alone → a hemisphere.
+  pycolmap's fisheye models cover at most a hemisphere: θ_max is capped at 90°.
+
+Fall-off (``falloff``; a vignetted image is ``gain × ideal``, so it is divided out; only pixels
+that see the scene, i.e. inside the image circle, must have gain > 0):
+- ``{model = "polynomial", coefficients = [k1, k2, k3], radius = R}``: g = 1 + k1 ρ² + k2 ρ⁴ +
+  k3 ρ⁶, ρ = |p − principal point| / R, R ``"image_circle"`` (default for a fisheye with a
+  circle), ``"half_diagonal"`` (default otherwise), ``"half_width"``, ``"half_height"`` or pixels;
+- ``{model = "cos4"}``: natural fall-off g = cos⁴ θ, θ the ray's angle off the optical axis;
+- ``{model = "flat_field", file = "flat.exr"}``: an image of a uniform field (any HDR format
+  :func:`f2l.io.probe_io.read_hdr_image` reads; the full frame's size), normalised to 1 at the
+  principal point (mean over a disc of 1% of the short side).
+- ``vignetting = [k1, k2, k3]`` (the earlier key) is the polynomial on the half diagonal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from f2l.capture.cameras import ViewCamera, equisolid_coefficients
+
+__all__ = ["Lens", "Falloff", "lens_from_view", "PROJECTIONS", "FISHEYES", "LensError"]
+
+PROJECTIONS = ("equidistant", "equisolid", "rectilinear")
+FISHEYES = ("equidistant", "equisolid")
+RADIUS_NAMES = ("image_circle", "half_diagonal", "half_width", "half_height")
+
+
+class LensError(ValueError):
+    """A lens description that cannot place the view; the message names the key."""
+
+
+@dataclass(frozen=True)
+class Falloff:
+    """``model`` "polynomial" (``coefficients``, ``radius_px``), "cos4" or "flat_field" (``file``,
+    a path relative to the capture root)."""
+
+    model: str
+    coefficients: tuple[float, ...] = ()
+    radius_px: float = 0.0
+    file: str | None = None
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A full-frame camera model (``model``, ``params`` in pycolmap's order), its image-circle half
+    angle (None: limited by the frame only) and its fall-off."""
+
+    model: str
+    params: tuple[float, ...]
+    width: int
+    height: int
+    max_angle_deg: float | None
+    falloff: Falloff | None
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        cam = ViewCamera.from_model(self.model, self.width, self.height, self.params).colmap
+        return float(cam.principal_point_x), float(cam.principal_point_y)
+
+    def view_camera(self, view_width: int, view_height: int, k: int = 1, crop_x: int = 0, crop_y: int = 0,
+                    **pose_deg) -> ViewCamera:
+        """The camera of a view box-averaged by ``k`` after dropping ``crop_x``/``crop_y`` full-frame
+        pixels on the left/top: focal lengths / k, principal point (c − crop) / k."""
+        base = ViewCamera.from_model(self.model, self.width, self.height, self.params).colmap
+        params = list(self.params)
+        for i in base.focal_length_idxs():
+            params[i] = params[i] / k
+        ix, iy = base.principal_point_idxs()
+        params[ix], params[iy] = (params[ix] - crop_x) / k, (params[iy] - crop_y) / k
+        return ViewCamera.from_model(self.model, view_width, view_height, params,
+                                     max_angle_deg=self.max_angle_deg, **pose_deg)
+
+    def gain(self, camera: ViewCamera, k: int = 1, crop_x: int = 0, crop_y: int = 0,
+             root: Path | None = None) -> np.ndarray | None:
+        """(h, w) float32 fall-off gain at the view's pixel centres (``camera`` from
+        :meth:`view_camera`), 1 where the lens sees nothing; None without a fall-off model.
+        LensError where a pixel that sees the scene has gain <= 0 or not finite."""
+        f = self.falloff
+        if f is None:
+            return None
+        h, w = camera.height, camera.width
+        valid = camera.valid_pixel_mask()
+        if f.model == "polynomial":
+            cx, cy = self.principal_point
+            x = crop_x + k * (np.arange(w, dtype=np.float64) + 0.5) - cx
+            y = crop_y + k * (np.arange(h, dtype=np.float64) + 0.5) - cy
+            r2 = (x[None, :] ** 2 + y[:, None] ** 2) / f.radius_px**2
+            g = np.ones_like(r2)
+            for i, c in enumerate(f.coefficients):
+                g += c * r2 ** (i + 1)
+        elif f.model == "cos4":
+            yy, xx = np.mgrid[0:h, 0:w] + 0.5
+            d, ok = camera.pixel_to_cam_direction(np.stack([xx.ravel(), yy.ravel()], axis=1))
+            g = np.where(ok, np.nan_to_num(-d[:, 2]) ** 4, 1.0).reshape(h, w)
+        else:
+            g = self._flat_field(root, k, crop_x, crop_y, h, w)
+        g = np.where(valid, g, 1.0)
+        bad = valid & ~(np.isfinite(g) & (g > 0))
+        if bad.any():
+            low = float(np.nanmin(np.where(valid, g, np.inf)))
+            raise LensError(f"fall-off gain is not positive where the lens sees the scene "
+                            f"({int(bad.sum())} px, min {low:g}): {f}")
+        return g.astype(np.float32)
+
+    def _flat_field(self, root, k, crop_x, crop_y, h, w) -> np.ndarray:
+        from f2l.io.probe_io import read_hdr_image
+
+        path = Path(self.falloff.file) if root is None else Path(root) / self.falloff.file
+        flat = read_hdr_image(path).astype(np.float64).mean(axis=2)
+        if flat.shape != (self.height, self.width):
+            raise LensError(f"{path}: flat field is {flat.shape[1]}x{flat.shape[0]}, the frames are "
+                            f"{self.width}x{self.height}")
+        cx, cy = self.principal_point
+        yy, xx = np.mgrid[0:self.height, 0:self.width] + 0.5
+        disc = np.hypot(xx - cx, yy - cy) <= max(1.0, 0.01 * min(self.width, self.height))
+        centre = float(flat[disc].mean())
+        if not (math.isfinite(centre) and centre > 0):
+            raise LensError(f"{path}: flat field is not positive at the principal point")
+        block = flat[crop_y:crop_y + h * k, crop_x:crop_x + w * k]
+        return block.reshape(h, k, w, k).mean(axis=(1, 3)) / centre
+
+
+def _number(view: dict, key: str) -> float | None:
+    value = view.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise LensError(f"{key} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _focal_px(view: dict, width: int, exif_focal_mm: float | None) -> tuple[float | None, str]:
+    """(focal length in full-frame px or None, where it came from)."""
+    if "focal_length_px" in view:
+        return _number(view, "focal_length_px"), "focal_length_px"
+    sensor = _number(view, "sensor_width_mm")
+    mm = _number(view, "focal_length_mm")
+    if mm is not None and sensor is None:
+        raise LensError("focal_length_mm needs sensor_width_mm (the frame's width in mm) to give pixels")
+    if sensor is not None:
+        if mm is None and exif_focal_mm:
+            mm = float(exif_focal_mm)
+            return mm * width / sensor, "EXIF FocalLength"
+        if mm is not None:
+            return mm * width / sensor, "focal_length_mm"
+    return None, ""
+
+
+def _r_of_theta(projection: str, theta: float) -> float:
+    return theta if projection == "equidistant" else 2.0 * math.sin(theta / 2)
+
+
+def _theta_of_r(projection: str, r_over_f: float) -> float:
+    if projection == "equidistant":
+        return r_over_f
+    return 2.0 * math.asin(min(1.0, r_over_f / 2))
+
+
+def _falloff(view: dict, circle_px: float | None, width: int, height: int) -> Falloff | None:
+    spec = view.get("falloff")
+    if spec is None and view.get("vignetting"):
+        spec = {"model": "polynomial", "coefficients": list(view["vignetting"]), "radius": "half_diagonal"}
+    if spec is None:
+        return None
+    model = spec.get("model")
+    if model == "cos4":
+        return Falloff("cos4")
+    if model == "flat_field":
+        if not spec.get("file"):
+            raise LensError("falloff model flat_field needs file = \"...\" (relative to the session folder)")
+        return Falloff("flat_field", file=str(spec["file"]))
+    if model != "polynomial":
+        raise LensError(f"falloff model must be polynomial, cos4 or flat_field, got {model!r}")
+    coeffs = tuple(float(c) for c in spec.get("coefficients", ()))
+    radius = spec.get("radius", "image_circle" if circle_px else "half_diagonal")
+    named = {"half_diagonal": 0.5 * math.hypot(width, height), "half_width": 0.5 * width,
+             "half_height": 0.5 * height, "image_circle": circle_px}
+    if isinstance(radius, str):
+        if radius not in named:
+            raise LensError(f"falloff radius must be one of {', '.join(RADIUS_NAMES)} or pixels, got {radius!r}")
+        if named[radius] is None:
+            raise LensError("falloff radius image_circle needs a fisheye lens with an image circle")
+        radius_px = float(named[radius])
+    else:
+        radius_px = float(radius)
+        if not (math.isfinite(radius_px) and radius_px > 0):
+            raise LensError(f"falloff radius must be positive, got {radius!r}")
+    return Falloff("polynomial", coeffs, radius_px)
+
+
+def lens_from_view(view: dict, width: int, height: int, exif_focal_mm: float | None = None) -> Lens:
+    """The :class:`Lens` a row's ``view_json`` describes for a full frame of ``width`` × ``height``
+    px (LensError naming the missing or inconsistent key)."""
+    if "colmap_model" in view:
+        model, params = str(view["colmap_model"]).upper(), tuple(float(p) for p in view.get("colmap_params", ()))
+        try:
+            ViewCamera.from_model(model, width, height, params)
+        except ValueError as exc:
+            raise LensError(f"colmap_model {model}: {exc}") from None
+        max_angle = _number(view, "max_angle_deg")
+        circle = _number(view, "image_circle_radius_px")
+        return Lens(model, params, width, height, max_angle, _falloff(view, circle, width, height))
+    projection = view.get("projection")
+    if projection not in PROJECTIONS:
+        raise LensError(f"no usable lens projection (got {projection!r}; session.toml [lens] projection must be "
+                        f"one of {', '.join(PROJECTIONS)}, or colmap_model with colmap_params)")
+    pp = view.get("principal_point_px", [width / 2, height / 2])
+    if not (isinstance(pp, (list, tuple)) and len(pp) == 2):
+        raise LensError(f"principal_point_px must be [cx, cy], got {pp!r}")
+    cx, cy = (float(v) for v in pp)
+    focal, _ = _focal_px(view, width, exif_focal_mm)
+    fov = _number(view, "fov_deg")
+    if projection == "rectilinear":
+        if focal is None:
+            if fov is None:
+                raise LensError("no focal length: give focal_length_px, focal_length_mm with sensor_width_mm, "
+                                "or fov_deg (session.toml [lens])")
+            if not fov < 180:
+                raise LensError(f"rectilinear fov_deg must be below 180, got {fov:g}")
+            focal = (width / 2) / math.tan(math.radians(fov) / 2)
+        return Lens("PINHOLE", (focal, focal, cx, cy), width, height, None, _falloff(view, None, width, height))
+    circle = _number(view, "image_circle_radius_px")
+    if fov is not None and not fov <= 360:
+        raise LensError(f"fov_deg must be at most 360, got {fov:g}")
+    half = None if fov is None else math.radians(fov) / 2
+    if focal is None and half is None:
+        raise LensError("no focal length or field of view: give focal_length_px, focal_length_mm with "
+                        "sensor_width_mm, or fov_deg (session.toml [lens])")
+    if focal is None:
+        circle = circle if circle is not None else min(width, height) / 2
+        focal = circle / _r_of_theta(projection, half)
+    elif half is None:
+        half = math.pi / 2 if circle is None else _theta_of_r(projection, circle / focal)
+    half = min(half, math.pi / 2)  # pycolmap's fisheye models: at most a hemisphere
+    circle = focal * _r_of_theta(projection, half) if circle is None else circle
+    k = (0.0, 0.0, 0.0, 0.0) if projection == "equidistant" else equisolid_coefficients(half)
+    return Lens("OPENCV_FISHEYE", (focal, focal, cx, cy, *k), width, height, math.degrees(half),
+                _falloff(view, circle, width, height))
