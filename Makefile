@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations hdri-import clean
+.PHONY: setup demo test test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -126,6 +126,10 @@ eval-real-ablations: $(STAMP)
 hdri-import: $(STAMP)
 	mkdir -p build/hdri && cd build/hdri && npm pack --silent @pmndrs/assets@1.7.0
 	$(BIN)/python -c "from f2l.render.hdri import import_pmndrs; import_pmndrs('build/hdri/pmndrs-assets-1.7.0.tgz', 'f2l/render/data/hdri')"
+
+# Re-create the shipped Hosek-Wilkie sun/sky table of `make-probes --restore-sun` (needs f2l[render]).
+sun-table: $(STAMP)
+	$(BIN)/python -m f2l.capture.sun_restore
 
 clean:
 	rm -rf $(VENV) demo_out

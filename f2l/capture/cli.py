@@ -85,6 +85,7 @@ def make_probes_cmd(
     probe_height: int = typer.Option(128, "--probe-height", min=8, help="Probe rows (lat-long, width 2x): 128 is 1.4° per texel."),
     view_max_side: int = typer.Option(1024, help="Merged views are box-averaged to at most this many px per side before they are written and assembled."),
     colour: str = typer.Option("rec709", "--colour", help="rec709: linear Rec.709 through the camera's colour matrix (DNG ColorMatrix, else LibRaw's table); camera: camera RGB."),
+    restore_sun: bool = typer.Option(False, "--restore-sun", help="Where the sun clips in every frame, restore its energy from the sky (matched to Hosek-Wilkie clear skies; flagged in probes.parquet)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe."""
@@ -96,7 +97,7 @@ def make_probes_cmd(
         typer.echo(f"f2l: warning: {problem} (session ingested without it)", err=True)
     try:
         summary = make_probes(root, work, grid_height=probe_height, view_max_side=view_max_side,
-                              colour_space=colour, progress=not json_out)
+                              colour_space=colour, restore_sun=restore_sun, progress=not json_out)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)

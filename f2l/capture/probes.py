@@ -95,7 +95,8 @@ def _safe(name: str) -> str:
 def _row(kind: str, name: str, session: str, status: str, message: str, **kw) -> dict:
     row = {"kind": kind, "name": name, "session": session, "status": status, "message": message,
            "path": None, "frames": 0, "saturated_fraction": None, "coverage_fraction": None,
-           "sun_elevation_deg": None, "sun_azimuth_deg": None, "colour_space": None, "seconds": 0.0}
+           "sun_elevation_deg": None, "sun_azimuth_deg": None, "colour_space": None, "sun_restored": None,
+           "seconds": 0.0}
     row.update(kw)
     return row
 
@@ -292,10 +293,13 @@ def _set_sun(row: dict, views: list) -> None:
 
 
 def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid_height: int = 128,
-                     grid_width: int = 256, colour_spaces: list[str] | None = None) -> dict:
+                     grid_width: int = 256, colour_spaces: list[str] | None = None,
+                     restore_sun: bool = False) -> dict:
     """Blend one session's placed views into ``out_dir/probes/<session>.exr`` (+ coverage PNG);
     returns its ``probes`` row (status ``error`` with the reason when assembly fails).
-    ``colour_spaces``: each view's (views in different spaces are not blended)."""
+    ``colour_spaces``: each view's (views in different spaces are not blended). ``restore_sun``:
+    a sun saturated in every frame gets its energy back from the sky
+    (:mod:`f2l.capture.sun_restore`; flagged in ``sun_restored`` and the message)."""
     from f2l.capture.sphere import assemble
     from f2l.io.exr import REC709_CHROMATICITIES, write_exr
     from f2l.lighting.grid import LatLongGrid
@@ -314,15 +318,10 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
     grid = LatLongGrid(grid_height, grid_width)
     rel = f"probes/{_safe(session)}.exr"
     (out_dir / "probes").mkdir(parents=True, exist_ok=True)
-    write_exr(out_dir / rel, probe.radiance, metadata={"f2l_session": session, "f2l_views": str(len(views)),
-                                                       "f2l_colour_space": spaces[0]},
-              chromaticities=REC709_CHROMATICITIES if spaces[0] == "rec709" else None)
-    _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
     sa = grid.solid_angles.reshape(grid.height, grid.width)
-    coverage = float((sa * probe.coverage).sum() / sa.sum())
     row = _row("probe", session, session, "ok", "", path=rel, frames=len(views),
                saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
-               coverage_fraction=coverage, colour_space=spaces[0])
+               coverage_fraction=float((sa * probe.coverage).sum() / sa.sum()), colour_space=spaces[0])
     _set_sun(row, views)
     if row["sun_elevation_deg"] is None and probe.coverage[: grid.height // 2].any():
         from f2l.metrics.lighting import sun_direction
@@ -330,8 +329,31 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
         d = sun_direction(probe.radiance, grid)
         row["sun_elevation_deg"] = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))
         row["sun_azimuth_deg"] = math.degrees(math.atan2(float(d[0]), float(-d[2])))
+    radiance, meta = probe.radiance, {"f2l_session": session, "f2l_views": str(len(views)),
+                                      "f2l_colour_space": spaces[0]}
+    if restore_sun:
+        radiance = _restore_sun(row, probe, grid, meta)
+    write_exr(out_dir / rel, radiance, metadata=meta,
+              chromaticities=REC709_CHROMATICITIES if spaces[0] == "rec709" else None)
+    _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def _restore_sun(row: dict, probe, grid, meta: dict) -> np.ndarray:
+    """The probe with its clipped sun restored (row and EXR header say what was done)."""
+    from f2l.capture.sun_restore import restore_sun
+    from f2l.lighting.grid import direction_from_angles
+
+    if row["sun_elevation_deg"] is None:
+        row["sun_restored"], row["message"] = False, "sun not restored: no sun found in the views"
+        return probe.radiance
+    sun = direction_from_angles(math.radians(row["sun_elevation_deg"]), math.radians(row["sun_azimuth_deg"]))
+    radiance, result = restore_sun(probe.radiance, probe.saturated, probe.coverage, sun, grid)
+    row["sun_restored"] = result.restored
+    row["message"] = "; ".join(m for m in (row["message"], result.message()) if m)
+    meta["f2l_sun_restored"] = result.message()
+    return radiance
 
 
 def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict]:
@@ -359,9 +381,10 @@ def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict
 
 def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 128,
                 grid_width: int | None = None, view_max_side: int = 1024, colour_space: str = "rec709",
-                progress: bool = False) -> ProbesSummary:
+                restore_sun: bool = False, progress: bool = False) -> ProbesSummary:
     """Run the merge and sphere stages for every session of ``work/captures.parquet`` (probe grid
-    ``grid_height`` x ``grid_width``, default 2 x height)."""
+    ``grid_height`` x ``grid_width``, default 2 x height; ``restore_sun``: see
+    :func:`assemble_session`)."""
     import pyarrow.parquet as pq
 
     from f2l.io.tables import rows_to_table, write_table_atomic
@@ -407,7 +430,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
 
     def assemble(session: str) -> None:
         if views:
-            row = assemble_session(session, views, work, grid_height, grid_width, spaces)
+            row = assemble_session(session, views, work, grid_height, grid_width, spaces, restore_sun)
             summary.rows.append(row)
             summary.probes += row["status"] == "ok"
         views.clear()

@@ -73,7 +73,7 @@ def merge_session(cache: Cache, root: Path, plan: SessionPlan, params: dict, cou
 
 
 def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw: tuple[int, int],
-                   counts: dict, timings: dict) -> dict | None:
+                   counts: dict, timings: dict, restore_sun: bool = False) -> dict | None:
     """Assemble the session's placed views: ``{"key", "row", "entry"}``, or None when no view is
     placed (every bracket failed or has no lens model)."""
     import time
@@ -83,14 +83,15 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
         return None
     key = stage_key("sphere", SPHERE_VERSION,
                     {"session": plan.name, "views": [[m["key"], m["view_json"]] for m in placed]},
-                    {"grid": list(grid_hw)})
+                    {"grid": list(grid_hw), "restore_sun": bool(restore_sun)})
 
     def produce(tmp: Path) -> dict:
         from f2l.capture.probes import assemble_session, load_view
 
         t0 = time.perf_counter()
         views = [load_view(m["entry"], m["row"], m["view_json"], m.get("focal_length_mm")) for m in placed]
-        row = assemble_session(plan.name, views, tmp, *grid_hw, [m["row"].get("colour_space") for m in placed])
+        row = assemble_session(plan.name, views, tmp, *grid_hw, [m["row"].get("colour_space") for m in placed],
+                               restore_sun)
         timings[f"sphere {plan.name}"] = round(time.perf_counter() - t0, 3)
         return {"row": {k: v for k, v in row.items() if k != "seconds"}}
 
@@ -99,7 +100,7 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
 
 
 def read_probe_file(path: Path) -> np.ndarray:
-    """(H, W, 3) float32 of an EXR or Radiance ``.hdr`` (ValueError naming the file)."""
+    """(H, W, 3) float32 of an EXR, Radiance ``.hdr``, PFM or float TIFF (ValueError naming the file)."""
     from f2l.io.exr import read_probe_image
 
     return read_probe_image(path)

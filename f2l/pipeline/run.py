@@ -60,7 +60,8 @@ def _session_probe(cache, root, plan, spec, counts, timings, left_out, warnings)
                     left_out.append({"path": frame["path"], "stage": "merge",
                                      "status": m["row"]["status"], "reason": m["row"]["message"]})
         n_ok = sum(m["row"]["status"] == "ok" for m in merged)
-        probe = probes.sphere_session(cache, plan, merged, grid_hw, counts["sphere"], timings)
+        probe = probes.sphere_session(cache, plan, merged, grid_hw, counts["sphere"], timings,
+                                      bool(spec.params("sphere").get("restore_sun", False)))
         first = sorted(plan.brackets[sorted(plan.brackets)[0]], key=lambda f: f["path"])[0]
         sky_camera = first["camera"] or ""
         if probe is None:
