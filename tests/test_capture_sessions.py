@@ -250,3 +250,26 @@ def test_canon_matrix_is_libraws_entry():
 
     with rawpy.imread(str(CR2)) as raw:
         np.testing.assert_allclose(np.asarray(raw.rgb_xyz_matrix)[:3].ravel(), CANON_EOS_30D_XYZ_TO_CAMERA, atol=1e-4)
+
+
+def test_full_resolution_probe(sessions, tmp_path):
+    """--full-probe: the fisheye's probe at its views' own resolution; area-averaged to the probe
+    grid it is the 128 x 256 probe, and it still holds the sky to 1% per channel."""
+    import pyarrow.compute as pc
+
+    root, work, truths, _, _, rows = sessions
+    work2 = tmp_path / "work"
+    work2.mkdir()
+    table = pq.read_table(work / "captures.parquet")
+    pq.write_table(table.filter(pc.equal(table["session"], "fisheye")), work2 / "captures.parquet")
+    run("make-probes", root, "--work", work2, "--probe-height", PROBE_HEIGHT, "--full-probe", "--json")
+    row = {(r["kind"], r["name"]): r for r in pq.read_table(work2 / "probes.parquet").to_pylist()}[("probe", "fisheye")]
+    full = read_exr(work2 / row["full_path"])
+    pixel_deg = math.degrees(1 / (8.0 * 1536 / 36.0 / 2))  # the view (box-averaged by 2) at its centre
+    assert full.shape[0] == min(512, 2 * math.ceil(90 / pixel_deg)) and full.shape[1] == 2 * full.shape[0]
+    probe = read_exr(work2 / row["path"])
+    upper = np.zeros(probe.shape[:2], bool)
+    upper[: PROBE_HEIGHT // 2 - 2] = True
+    coarse = resample(full, PROBE_HEIGHT, 2 * PROBE_HEIGHT)
+    rel = np.abs(coarse[upper] - probe[upper]) / np.maximum(probe[upper], 1e-12)
+    assert np.median(rel) < 0.005, np.median(rel)

@@ -86,6 +86,7 @@ def make_probes_cmd(
     view_max_side: int = typer.Option(1024, help="Merged views are box-averaged to at most this many px per side before they are written and assembled."),
     colour: str = typer.Option("rec709", "--colour", help="rec709: linear Rec.709 through the camera's colour matrix (DNG ColorMatrix, else LibRaw's table); camera: camera RGB."),
     restore_sun: bool = typer.Option(False, "--restore-sun", help="Where the sun clips in every frame, restore its energy from the sky (matched to Hosek-Wilkie clear skies; flagged in probes.parquet)."),
+    full_probe: bool = typer.Option(False, "--full-probe", help="Also write probes/<session>.full.exr at the views' own resolution (up to 512 rows; slow: ~13 s per view): a ground truth finer than the probe grid."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe."""
@@ -97,7 +98,7 @@ def make_probes_cmd(
         typer.echo(f"f2l: warning: {problem} (session ingested without it)", err=True)
     try:
         summary = make_probes(root, work, grid_height=probe_height, view_max_side=view_max_side,
-                              colour_space=colour, restore_sun=restore_sun, progress=not json_out)
+                              colour_space=colour, restore_sun=restore_sun, full_probe=full_probe, progress=not json_out)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)

@@ -96,7 +96,7 @@ def _row(kind: str, name: str, session: str, status: str, message: str, **kw) ->
     row = {"kind": kind, "name": name, "session": session, "status": status, "message": message,
            "path": None, "frames": 0, "saturated_fraction": None, "coverage_fraction": None,
            "sun_elevation_deg": None, "sun_azimuth_deg": None, "colour_space": None, "sun_restored": None,
-           "seconds": 0.0}
+           "full_path": None, "seconds": 0.0}
     row.update(kw)
     return row
 
@@ -292,14 +292,46 @@ def _set_sun(row: dict, views: list) -> None:
     row["sun_azimuth_deg"] = math.degrees(math.atan2(float(d[0]), float(-d[2])))
 
 
+FULL_PROBE_MAX_HEIGHT = 512  # 0.35° texels; assembly time grows with the texels (~13 s per 0.4-MP view)
+
+
+def full_probe_height(views: list) -> int:
+    """Probe rows matching the finest view's pixel angle at its principal point (even, at most
+    :data:`FULL_PROBE_MAX_HEIGHT`): the probe that keeps what the views resolve."""
+    finest = 180.0
+    for v in views:
+        cam = v.camera
+        cx, cy = float(cam.colmap.principal_point_x), float(cam.colmap.principal_point_y)
+        d, ok = cam.pixel_to_cam_direction(np.array([[cx, cy], [cx + 1.0, cy]]))
+        if ok.all():
+            finest = min(finest, math.degrees(math.acos(float(np.clip(d[0] @ d[1], -1, 1)))))
+    return int(min(FULL_PROBE_MAX_HEIGHT, 2 * math.ceil(90.0 / finest)))
+
+
+def write_full_probe(session: str, views: list, out_dir: str | os.PathLike, colour_space: str) -> tuple[str, int]:
+    """``out_dir/probes/<session>.full.exr`` at :func:`full_probe_height` (+ its coverage PNG);
+    returns (its path relative to ``out_dir``, its height)."""
+    from f2l.capture.sphere import assemble
+    from f2l.io.exr import REC709_CHROMATICITIES, write_exr
+
+    height = full_probe_height(views)
+    probe = assemble(views, height, 2 * height)
+    rel = f"probes/{_safe(session)}.full.exr"
+    write_exr(Path(out_dir) / rel, probe.radiance, metadata={"f2l_session": session, "f2l_colour_space": colour_space},
+              chromaticities=REC709_CHROMATICITIES if colour_space == "rec709" else None)
+    _write_mask_png(Path(out_dir) / rel.replace(".exr", ".coverage.png"), probe.coverage)
+    return rel, height
+
+
 def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid_height: int = 128,
                      grid_width: int = 256, colour_spaces: list[str] | None = None,
-                     restore_sun: bool = False) -> dict:
+                     restore_sun: bool = False, full_probe: bool = False) -> dict:
     """Blend one session's placed views into ``out_dir/probes/<session>.exr`` (+ coverage PNG);
     returns its ``probes`` row (status ``error`` with the reason when assembly fails).
     ``colour_spaces``: each view's (views in different spaces are not blended). ``restore_sun``:
     a sun saturated in every frame gets its energy back from the sky
-    (:mod:`f2l.capture.sun_restore`; flagged in ``sun_restored`` and the message)."""
+    (:mod:`f2l.capture.sun_restore`; flagged in ``sun_restored`` and the message). ``full_probe``:
+    also the probe at the views' own resolution (:func:`write_full_probe`, ``full_path``)."""
     from f2l.capture.sphere import assemble
     from f2l.io.exr import REC709_CHROMATICITIES, write_exr
     from f2l.lighting.grid import LatLongGrid
@@ -336,6 +368,9 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
     write_exr(out_dir / rel, radiance, metadata=meta,
               chromaticities=REC709_CHROMATICITIES if spaces[0] == "rec709" else None)
     _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
+    if full_probe:
+        row["full_path"], height = write_full_probe(session, views, out_dir, spaces[0])
+        row["message"] = "; ".join(m for m in (row["message"], f"full-resolution probe {height}x{2 * height}") if m)
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
 
@@ -381,9 +416,9 @@ def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict
 
 def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 128,
                 grid_width: int | None = None, view_max_side: int = 1024, colour_space: str = "rec709",
-                restore_sun: bool = False, progress: bool = False) -> ProbesSummary:
+                restore_sun: bool = False, full_probe: bool = False, progress: bool = False) -> ProbesSummary:
     """Run the merge and sphere stages for every session of ``work/captures.parquet`` (probe grid
-    ``grid_height`` x ``grid_width``, default 2 x height; ``restore_sun``: see
+    ``grid_height`` x ``grid_width``, default 2 x height; ``restore_sun``, ``full_probe``: see
     :func:`assemble_session`)."""
     import pyarrow.parquet as pq
 
@@ -430,7 +465,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
 
     def assemble(session: str) -> None:
         if views:
-            row = assemble_session(session, views, work, grid_height, grid_width, spaces, restore_sun)
+            row = assemble_session(session, views, work, grid_height, grid_width, spaces, restore_sun, full_probe)
             summary.rows.append(row)
             summary.probes += row["status"] == "ok"
         views.clear()

@@ -37,7 +37,7 @@ import numpy as np
 from f2l.pipeline.cache import Cache, stage_key
 
 SHARDS_VERSION = 1
-GT_PROBE_VERSION = 1
+GT_PROBE_VERSION = 2  # 2: chromaticities of a Rec.709 probe in the header
 USABLE_CHART = ("ok", "partial")
 MAX_SHARD_FACTOR = 4
 
@@ -111,8 +111,11 @@ def gt_probe(cache: Cache, session: str, probe: dict, chart: dict | None, note: 
                                                    keep_exposure=False), 0.0)
         if azimuth_deg is not None:
             radiance = rotate_y(radiance, -math.radians(azimuth_deg))
-        write_exr(tmp / "probe.exr", np.asarray(radiance, np.float32),
-                  metadata={"f2l_session": session})
+        from f2l.io.exr import REC709_CHROMATICITIES
+
+        rec709 = probe["row"].get("colour_space") == "rec709"
+        write_exr(tmp / "probe.exr", np.asarray(radiance, np.float32), metadata={"f2l_session": session},
+                  chromaticities=REC709_CHROMATICITIES if rec709 else None)
         return {"applied": applied}
 
     result, entry = cache.get_or_make("gt-probe", key, produce, counts)
