@@ -116,6 +116,8 @@ def make_tree(root: Path) -> None:
     write_exr(root / "park" / "probes" / "given.exr", _sky(32, 60.0, 0.0, 128.0))
     write_bracket(root / "empty" / "sky", np.full((48, 64, 3), 0.2, np.float32), EXPOSURES_S,
                   seed=4)
+    # a top-level key after [[shots]] belongs to the shot in TOML: the card must say so
+    (root / "empty" / "session.toml").write_text('[[shots]]\nfiles = "sky/*"\nprobe_azimuth_deg = 10.0\n')
 
 
 def output_bytes(out: Path) -> dict[str, bytes]:
@@ -179,6 +181,8 @@ def test_reference_build_pairs_faces_with_probes_and_colour(tree, reference):
     assert sessions["park"]["probe"]["applied"]["colour"]["method"] == "identity"
     assert sessions["park"]["face_colour"][""]["method"] == "identity"
     assert any("park" in w and "identity" in w for w in card["warnings"])
+    assert any(w.startswith("session empty: session.toml not used") and "shots/0" in w and "probe_azimuth_deg" in w
+               and "top-level key" in w for w in card["warnings"]), card["warnings"]
     # records: observed_rgb = the chart's correction of the fitted camera RGB (site), as is (park)
     records = {r.face_id: r for r in iter_records(out)}
     assert len(records) == 3 and all(r.ok for r in records.values())

@@ -97,7 +97,9 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
               ("merge", "sphere", "calibrate", "fit-faces", "gt-probe", "shards")}
     summary.stages = counts
     timings: dict = {}
-    warnings: list[str] = []
+    problems = sorted({(r["session"], r["session_problem"]) for r in rows if r.get("session_problem")})
+    warnings: list[str] = [f"session {session}: session.toml not used: {relative_message(problem, root)}"
+                           for session, problem in problems]
     state = _probes_and_charts(cache, root, spec, sessions, counts, timings, left_out, warnings)
     clock.lap("probes+calibrate", clock.counts("merge", "sphere", "calibrate"))
     fits = _fit_all(cache, root, spec, sessions, counts, timings, landmarker_path, progress)
@@ -140,10 +142,6 @@ def _probes_and_charts(cache, root, spec, sessions, counts, timings, left_out, w
     """{session: {"probe", "sky_camera", "charts", "brackets_ok"}}."""
     state = {}
     for plan in sessions:
-        rows = plan.faces + plan.charts + plan.given_probes + [f for fr in plan.brackets.values() for f in fr]
-        problems = sorted({r.get("session_problem") or "" for r in rows} - {""})
-        for problem in problems:
-            warnings.append(f"session {plan.name}: session.toml not used: {relative_message(problem, root)}")
         probe, sky_camera, n_ok = _session_probe(cache, root, plan, spec, counts, timings,
                                                  left_out, warnings)
         charts = [faces.calibrate_chart(cache, root, row, spec.params("calibrate"),
