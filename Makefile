@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,8 +21,16 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/f2l demo --out demo_out
 
-test: $(STAMP)
+# The report's browser test needs Chromium: Debian's package, installed where the machine allows
+# (root and apt); elsewhere that one test skips and says why.
+test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
+
+browser:
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+		{ DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || \
+		  { apt-get update -qq >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1; }; }; } || \
+		echo "chromium is not installed (needs root and apt): the report's browser test will skip"
 
 # The suite once per CPU code path (OpenBLAS kernel, ATen SIMD level, MKL instruction set), one
 # machine, ~2 min each; table in build/cpu_paths.md (docs/numerics.md). Not part of `make test`.

@@ -5,3 +5,14 @@ Conventions (directions, probes, units) are documented in ``docs/conventions.md`
 """
 
 __version__ = "0.1.0"
+
+
+def _at_exit() -> None:
+    from f2l.io.probe_io import release_openimageio_references
+
+    release_openimageio_references()
+
+
+import atexit as _atexit  # noqa: E402
+
+_atexit.register(_at_exit)

@@ -180,13 +180,14 @@ def _plot(summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     from f2l.metrics import METRIC_NAMES
+    from f2l.report.plots import log_time_axis
 
     fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
     for ax, metric in zip(axes.ravel(), METRIC_NAMES):
         for name, mean in summary.items():
             ax.scatter(mean["total_s"], mean[metric], s=40)
             ax.annotate(name, (mean["total_s"], mean[metric]), fontsize=8, xytext=(3, 3), textcoords="offset points")
-        ax.set_xscale("log")
+        log_time_axis(ax, [m["total_s"] for m in summary.values()])
         ax.set_xlabel("seconds per face")
         ax.set_title(metric, fontsize=9)
         ax.grid(alpha=0.3)

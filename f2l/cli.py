@@ -324,6 +324,25 @@ def demo(
     run_demo(out, n=n, seed=seed, models=model)
 
 
+@app.command()
+def report(
+    folder: Path = typer.Argument(..., help="An evaluation folder (shards/ + estimates/, e.g. demo_out) or a build-dataset output folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="The HTML file (default FOLDER/report.html); thumbnails go to report_files/ beside it."),
+    work: Optional[Path] = typer.Option(None, "--work", help="build-dataset's work folder: brackets, statuses and coverage per session."),
+    page_size: int = typer.Option(200, "--page-size", min=1, help="Faces per page."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """One self-contained HTML report per build or evaluation folder (no server, nothing remote)."""
+    from f2l.report.build import write_report
+
+    if not folder.is_dir():
+        _fail(f"{folder}: not a folder")
+    summary = write_report(folder, out, work=work, page_size=page_size)
+    typer.echo(json.dumps(summary.to_json()) if json_out else
+               f"wrote {summary.pages[0]} ({len(summary.pages)} pages, {summary.faces} faces; thumbnails "
+               f"{summary.thumbnails_written} written, {summary.thumbnails_reused} reused)")
+
+
 def _progress(total: int, desc: str, enabled: bool):
     """(callback(n), close()) over a tqdm bar on stderr, or no-ops when disabled."""
     if not enabled:

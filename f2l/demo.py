@@ -45,7 +45,12 @@ def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = N
     for p in pictures:
         echo(f"  wrote {p}")
     echo(f"tables: {result['summary_md']}, {result['summary_csv']}, {result['per_face_csv']}")
-    return {"synth": synth_summary, "estimate": est_summary, "markdown": result["markdown"], "pictures": pictures}
+    from f2l.report.build import write_report
+
+    report = write_report(out, title=f"f2l demo: {n} synthetic faces (own renders)")
+    echo(f"report: {report.pages[0]} (open it in a browser)")
+    return {"synth": synth_summary, "estimate": est_summary, "markdown": result["markdown"], "pictures": pictures,
+            "report": report.pages[0]}
 
 
 def write_pictures(out: Path, shards: Path, est_dir: Path, models: list[str], max_faces: int = 12) -> list[str]:

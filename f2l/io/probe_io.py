@@ -67,3 +67,19 @@ def read_hdr_image(path: str | os.PathLike) -> np.ndarray:
     if img.size and float(img.min()) < -NEGATIVE_TOLERANCE:
         raise ValueError(f"{path}: negative values (min {float(img.min()):g}); radiance must be >= 0")
     return np.ascontiguousarray(np.maximum(img, 0.0))
+
+
+def release_openimageio_references() -> None:
+    """Drop the OpenImageIO objects colour-science keeps in module globals (``colour.io.image``
+    imports ``TypeDesc`` and builds a bit-depth table of them when OpenImageIO is installed).
+    Left alive until interpreter shutdown, they make nanobind print "leaked instances / types /
+    functions" to stderr after every f2l command; f2l runs this at exit (``atexit``)."""
+    import sys
+
+    module = sys.modules.get("colour.io.image")
+    if module is None:
+        return
+    for name, value in list(vars(module).items()):
+        owner = getattr(value, "__module__", None) or getattr(type(value), "__module__", "") or ""
+        if str(owner).startswith("OpenImageIO") or name == "MAPPING_BIT_DEPTH":
+            setattr(module, name, None)
