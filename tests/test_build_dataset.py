@@ -278,6 +278,22 @@ def test_clean_builds_identical_reruns_incremental(tree, reference, tmp_path):
     assert (out / "probes" / "site.exr").read_bytes() != probe_before
 
 
+def test_ray_build_equals_the_local_build(tree, reference, tmp_path):
+    """--executor ray: merge, sphere, calibrate and fit-faces as Ray tasks on a local Ray of 2
+    CPUs write the same cache entries; the output is the local build's, byte for byte."""
+    pytest.importorskip("ray")
+    summary = build_dataset(tree / "raw", tmp_path / "work", tmp_path / "out", tree / "pipeline.toml",
+                            executor="ray", workers=2)
+    assert_same_output(reference[2], tmp_path / "out")
+    local = reference[0]
+    assert computed(summary) == computed(local)  # made on Ray count as computed by this build
+    # everything per item ran on Ray; the given probe's resample (a "sphere" entry) stays local
+    assert summary.on_executor == {**{k: computed(local)[k] for k in ("merge", "calibrate", "fit-faces")}, "sphere": 1}
+    again = build_dataset(tree / "raw", tmp_path / "work", tmp_path / "out", tree / "pipeline.toml",
+                          executor="ray", workers=2)
+    assert again.nothing_to_do and all(v == 0 for v in computed(again).values())
+
+
 def _records(out: Path):
     from f2l.io.shards import iter_records
 
@@ -333,6 +349,29 @@ def test_sigkill_then_resume_equals_uninterrupted(tree, reference, tmp_path):
     assert_same_output(out_ref, out)
 
 
+def test_ray_build_survives_sigkill_and_resumes(tree, reference, tmp_path):
+    """--executor ray killed (SIGKILL, driver and all) once a fit-faces entry is made: the entries
+    that completed are the reference build's, and a resumed Ray build computes only the rest and
+    publishes the local build's output."""
+    pytest.importorskip("ray")
+    _, work_ref, out_ref = reference
+    work, out = tmp_path / "work", tmp_path / "out"
+    stage, stage_ref = work / "cache" / "fit-faces", work_ref / "cache" / "fit-faces"
+    cmd = _cli(tree, work, out) + ["--executor", "ray", "--workers", "2"]
+    rc = _run_and_kill(cmd, lambda: any(stage.glob("*/done")), tmp_path, timeout_s=180.0)
+    assert rc == -signal.SIGKILL and not (out / "dataset_card.json").exists()
+    fitted = _entries(stage)
+    assert fitted and all(files == _entries(stage_ref)[key] for key, files in fitted.items())
+    resumed = build_dataset(tree / "raw", work, out, tree / "pipeline.toml", executor="ray", workers=2)
+    total = len(list(stage_ref.glob("*/done")))
+    # Ray's workers may finish a task or two after the driver died: those entries count as reused
+    fit = resumed.stages["fit-faces"]
+    assert fit["computed"] + fit["reused"] == total and fit["reused"] >= len(fitted)
+    assert _entries(stage) == _entries(stage_ref)
+    assert not list((work / "cache").glob("*/.tmp-*"))
+    assert_same_output(out_ref, out)
+
+
 def _entries(stage_dir: Path) -> dict[str, dict]:
     """Complete cache entries of one stage: {key: {relative path: bytes}}, the ``done`` result
     parsed and without its run times (the only part that differs between identical builds)."""
@@ -342,7 +381,7 @@ def _entries(stage_dir: Path) -> dict[str, dict]:
         return {k: v for k, v in json.loads(f.read_text()).items() if k != "timings"}
 
     return {d.name: {f.relative_to(d).as_posix(): content(f) for f in sorted(d.rglob("*")) if f.is_file()}
-            for d in sorted(stage_dir.iterdir()) if (d / "done").is_file()}
+            for d in sorted(stage_dir.iterdir()) if not d.name.startswith(".tmp-") and (d / "done").is_file()}
 
 
 def test_lock_stops_a_second_build(tree, tmp_path):

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from f2l.pipeline.cache import BuildLock, Cache
+from f2l.pipeline.cache import BuildLock, Cache, new_build_token
 from f2l.pipeline.spec import Pipeline, load_pipeline
 
 ROOT_FILE = "build_root.json"
@@ -51,6 +51,7 @@ class BuildSummary:
     warnings: list = field(default_factory=list)
     seconds: float = 0.0
     stage_seconds: dict = field(default_factory=dict)
+    on_executor: dict = field(default_factory=dict)  # entries made by Ray tasks, per stage (--executor ray)
 
     @property
     def message(self) -> str:
@@ -106,13 +107,18 @@ def _append_log(work: Path, entry: dict) -> None:
 
 
 def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None = None, *,
-                  landmarker_path=None, echo=None, progress: bool = False) -> BuildSummary:
+                  landmarker_path=None, echo=None, progress: bool = False, executor: str = "local",
+                  address: str | None = None, workers: int = 2) -> BuildSummary:
     """Build (or bring up to date) the shard folder ``out`` from the capture tree ``root``
     (None: the one a previous build in ``work`` used). ``pipeline``: a :class:`Pipeline`, a
     TOML path, or None for ``pipelines/face2light.toml``. ``echo(str)`` receives one line per
     stage as it finishes; ``progress`` shows a bar while faces are fitted. Raises
     :class:`~f2l.pipeline.cache.LockHeld`, :class:`~f2l.pipeline.spec.PipelineError`,
-    FileNotFoundError or ValueError (WORK or OUT inside ROOT) before writing anything."""
+    FileNotFoundError or ValueError (WORK or OUT inside ROOT) before writing anything.
+    ``executor`` "ray": the per-item stages run as Ray tasks (:mod:`f2l.pipeline.ray_build`) on
+    the cluster at ``address``, or on a local one with ``workers`` CPUs; the output is the same."""
+    if executor not in ("local", "ray"):
+        raise ValueError(f"executor must be local or ray, got {executor!r}")
     spec = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
     work, out = Path(work), Path(out)
     root = Path(os.path.abspath(_resolve_root(root, work)))
@@ -125,13 +131,15 @@ def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None
     with BuildLock(work, out):
         summary = BuildSummary(root=str(root), work=str(work), out=str(out))
         cache = Cache(work)
+        token = new_build_token(work)  # before the sweep: a killed build's Ray tasks stop publishing
         swept = cache.sweep()
         if swept:
             say(f"removed {swept} unfinished cache entr{'y' if swept == 1 else 'ies'} "
                 f"of an interrupted build")
         from f2l.pipeline.run import run_stages
 
-        run_stages(spec, root, work, out, cache, summary, landmarker_path, say, progress)
+        run_stages(spec, root, work, out, cache, summary, landmarker_path, say, progress,
+                   {"name": executor, "address": address, "workers": workers, "token": token})
         _remember_root(root, work)
     summary.seconds = round(time.perf_counter() - t_start, 3)
     _append_log(work, {"utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),

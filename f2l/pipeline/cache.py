@@ -9,7 +9,9 @@ Writing an entry (:meth:`Cache.write`): the outputs go into ``WORK/cache/<stage>
 then ``done`` (the entry's JSON result) is written and fsynced last, then the folder is renamed to
 ``<key>``. A reader trusts an entry only when ``<key>/done`` exists, so a build killed at any point
 leaves either a complete entry or a temporary folder, which the next build removes
-(:meth:`Cache.sweep`, called under the lock).
+(:meth:`Cache.sweep`, called under the lock). Two writers of one key (a Ray task of a killed
+build can outlive its driver by a moment) never delete each other's work: the first complete
+entry stays, and the later writer returns its result.
 
 The lock: ``fcntl.flock`` on ``WORK/.lock`` (non-blocking; the file holds the holder's pid) and on
 the output folder itself, so two builds never write one work folder or one output. The kernel
@@ -53,11 +55,42 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+TOKEN_FILE = ".build-token"
+
+
+class StaleBuild(RuntimeError):
+    """A cache writer of an earlier (killed) build tried to publish after a new build began."""
+
+
+def new_build_token(work: str | os.PathLike) -> str:
+    """Write a fresh ``WORK/.build-token`` (atomically) and return it; called under the lock,
+    before the sweep."""
+    import uuid
+
+    token = uuid.uuid4().hex
+    path = Path(work) / TOKEN_FILE
+    tmp = path.with_name(f"{TOKEN_FILE}.{os.getpid()}")
+    tmp.write_text(token)
+    os.replace(tmp, path)
+    return token
+
+
+def read_build_token(work: str | os.PathLike) -> str | None:
+    try:
+        return (Path(work) / TOKEN_FILE).read_text().strip()
+    except OSError:
+        return None
+
+
 class Cache:
     """Content-keyed stage outputs under ``WORK/cache``."""
 
-    def __init__(self, work: str | os.PathLike):
+    def __init__(self, work: str | os.PathLike, token: str | None = None):
+        """``token``: the build this cache writer belongs to (:func:`new_build_token`); an entry
+        is then published only while ``WORK/.build-token`` still holds it, so a Ray task that
+        outlives its killed build publishes nothing once a new build has begun."""
         self.root = Path(work) / "cache"
+        self.token = token
 
     def entry(self, stage: str, key: str) -> Path:
         return self.root / stage / key
@@ -83,14 +116,42 @@ class Cache:
                 fh.write(canonical_json(result))
                 fh.flush()
                 os.fsync(fh.fileno())
-            if final.exists():  # an entry without `done` (the lookup failed): replace it
-                shutil.rmtree(final)
-            os.rename(tmp, final)
-            _fsync_dir(final.parent)
+            if self.token is not None and read_build_token(self.root.parent) != self.token:
+                raise StaleBuild(f"{self.root.parent}: a newer build owns this work folder; "
+                                 f"{stage} entry {key[:12]} not published")
+            existing = self._publish(stage, key, tmp)
+            if existing is not None:
+                return existing
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return result
+
+    def _publish(self, stage: str, key: str, tmp: Path) -> dict | None:
+        """Rename ``tmp`` to the entry; None when it is published, or the result of a complete
+        entry another writer of the same key published first (kept: content-keyed, so the same,
+        and someone may be reading it; ``tmp`` is removed). Only an entry without ``done`` is moved
+        aside and removed (a complete one never lacks it: ``done`` is written before the rename)."""
+        final = self.entry(stage, key)
+        for _ in range(5):
+            existing = self.lookup(stage, key)
+            if existing is not None:
+                shutil.rmtree(tmp, ignore_errors=True)
+                return existing
+            try:
+                os.rename(tmp, final)
+                _fsync_dir(final.parent)
+                return None
+            except OSError:  # the entry exists: published meanwhile (next lookup), or stale
+                if self.lookup(stage, key) is not None:
+                    continue
+                stale = final.parent / f"{TMP_PREFIX}stale-{key}-{os.getpid()}"
+                try:
+                    os.rename(final, stale)
+                except OSError:
+                    continue
+                shutil.rmtree(stale, ignore_errors=True)
+        raise OSError(f"{final}: could not publish the cache entry")
 
     def get_or_make(self, stage: str, key: str, produce: Callable[[Path], dict],
                     counts: dict) -> tuple[dict, Path]:

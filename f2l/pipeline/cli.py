@@ -22,22 +22,27 @@ def build_dataset_cmd(
     work: Path = typer.Option(Path("work"), "--work", help="Work folder: captures.parquet, the stage cache, the lock and the run log."),
     out: Path = typer.Option(Path("shards"), "--out", help="Output shard folder (face records, probes/, photos/, overlays/, dataset_card.json)."),
     landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
+    executor: str = typer.Option("local", "--executor", help="local, or ray: merge, sphere, calibrate and fit-faces (with transport) as Ray tasks; the same output."),
+    address: Optional[str] = typer.Option(None, "--address", help="--executor ray: the cluster (HOST:PORT); without it a local Ray with --workers CPUs."),
+    workers: int = typer.Option(2, "--workers", min=1, help="--executor ray without --address: CPUs of the local Ray."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON summary only."),
 ) -> None:
     """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out."""
     from f2l.face.landmarker import LandmarkerError
     from f2l.pipeline.build import build_dataset
     from f2l.pipeline.cache import LockHeld
+    from f2l.pipeline.ray_build import ExecutorUnavailable
     from f2l.synth.facemesh import FaceMeshError
 
     echo = None if json_out else (lambda line: typer.echo(line, err=True))
     try:
         summary = build_dataset(root, work, out, pipeline, landmarker_path=landmarker, echo=echo,
-                                progress=not json_out and sys.stderr.isatty())
+                                progress=not json_out and sys.stderr.isatty(), executor=executor,
+                                address=address, workers=workers)
     except LockHeld as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=3)
-    except (ValueError, FileNotFoundError, LandmarkerError, FaceMeshError) as exc:
+    except (ValueError, FileNotFoundError, LandmarkerError, FaceMeshError, ExecutorUnavailable) as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)
     if json_out:

@@ -86,8 +86,10 @@ def _photo_left_out(fit: dict) -> list[dict]:
 
 
 def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmarker_path,
-               say, progress: bool = False) -> None:
-    """Ingest → plan → probes, charts → faces → pairing, shards → card → publish."""
+               say, progress: bool = False, executor: dict | None = None) -> None:
+    """Ingest → plan → probes, charts → faces → pairing, shards → card → publish. ``executor``:
+    ``{"name": "ray", "address": ..., "workers": N}`` makes the per-item entries on Ray first
+    (:mod:`f2l.pipeline.ray_build`); the local pass then only reads them."""
     clock = _Clock(summary, say)
     rows = _ingest(spec, root, work, summary)
     clock.lap("ingest", f"{summary.ingest['read']} read, {summary.ingest['reused']} unchanged")
@@ -97,6 +99,14 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
               ("merge", "sphere", "calibrate", "fit-faces", "gt-probe", "shards")}
     summary.stages = counts
     timings: dict = {}
+    on_ray = {}
+    if executor and executor.get("name") == "ray":
+        from f2l.pipeline.ray_build import prewarm
+
+        on_ray = prewarm(spec, root, work, sessions, landmarker_path, token=executor["token"],
+                         address=executor.get("address"), workers=int(executor.get("workers", 2)))
+        summary.on_executor = dict(on_ray)
+        clock.lap("ray", ", ".join(f"{k} {v}" for k, v in on_ray.items()) + " entries made on Ray")
     problems = sorted({(r["session"], r["session_problem"]) for r in rows if r.get("session_problem")})
     warnings: list[str] = [f"session {session}: session.toml not used: {relative_message(problem, root)}"
                            for session, problem in problems]
@@ -126,6 +136,9 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
                                              if p["gt"] is not None),
                 "shards": len(shards), "left_out": len(left_out)},
         left_out=left_out, warnings=warnings, files=files)
+    for stage, made in on_ray.items():  # made on Ray: computed, not reused, by this build
+        counts[stage]["computed"] += made
+        counts[stage]["reused"] -= made
     text = card.card_text(doc)
     summary.counts, summary.warnings = doc["counts"], doc["warnings"]
     if up_to_date(work, out, files, text):
