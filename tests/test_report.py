@@ -132,6 +132,8 @@ def test_hostile_names_and_exif_stay_text(tmp_path):
     for injected in (HOSTILE, "<script>alert(2)</script>", '"><img src=y onerror=alert(3)>', "broken<script>.png"):
         assert injected in text  # shown, as text
     assert all(p.is_file() for p in image_sources(page, tags))
+    assert str(tmp_path) not in page.read_text()  # no machine path: messages are relative to the tree
+    assert "fit overlay" in text and "chart ΔE2000" in text
     if CHROMIUM:
         dom, console = _chromium(page)
         live = Tags()

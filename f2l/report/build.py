@@ -189,6 +189,12 @@ def _sessions_section(card: dict, out_dir: Path, folder: Path, work: Path | None
         probes_rows = {(r["kind"], r["name"]): r for r in pq.read_table(work / "probes.parquet").to_pylist()}
     if work is not None and (work / "captures.parquet").is_file():
         captures = pq.read_table(work / "captures.parquet").to_pylist()
+        root = _capture_root(work)
+        if root is not None:  # messages name files relative to the capture tree, as the card does
+            from f2l.pipeline.plan import relative_message
+
+            for r in captures:
+                r["message"] = relative_message(r["message"], root)
     out = [el("h2", f"Sessions ({len(card.get('sessions', []))})", id="sessions")]
     for s in card.get("sessions", []):
         name = s["name"]
@@ -215,9 +221,38 @@ def _sessions_section(card: dict, out_dir: Path, folder: Path, work: Path | None
                          *[el("tr", *[el("td", r.get(k) or "", class_="l") for k in ("path", "role", "camera", "lens",
                                                                                     "status", "message")])
                            for r in files]) if files else None,
+                      _colour_table(s.get("face_colour", {}), work),
                       el("p", "skipped: " + "; ".join(f"{k}: {v}" for k, v in s.get("skipped", {}).items()))
                       if s.get("skipped") else None, class_="session"))
     return out
+
+
+def _capture_root(work: Path) -> Path | None:
+    from f2l.pipeline.build import ROOT_FILE
+
+    try:
+        return Path(json.loads((work / ROOT_FILE).read_text(encoding="utf-8"))["root"])
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _colour_table(face_colour: dict, work: Path | None) -> Html | None:
+    """Per camera: the correction applied to its faces, and its chart's ΔE2000 (mean / max,
+    before → after) from the calibrate cache entry when ``work`` is given."""
+    if not face_colour:
+        return None
+    rows = []
+    for camera, c in sorted(face_colour.items()):
+        delta = ""
+        done = work / "cache" / "calibrate" / c["chart_key"] / "done" if work is not None and c.get("chart_key") else None
+        if done is not None and done.is_file():
+            de = json.loads(done.read_text()).get("delta_e", {})
+            delta = (f"mean {_fmt(de.get('mean_delta_e_before'))} → {_fmt(de.get('mean_delta_e_after'))}, "
+                     f"max {_fmt(de.get('max_delta_e_before'))} → {_fmt(de.get('max_delta_e_after'))}")
+        rows.append(el("tr", *[el("td", v, class_="l") for v in (camera or "(unknown camera)", c.get("method"),
+                                                                 c.get("chart") or "", delta, c.get("note"))]))
+    head = el("tr", *[el("th", k, class_="l") for k in ("camera", "colour correction", "chart", "chart ΔE2000", "note")])
+    return el("table", head, *rows)
 
 
 def _face_rows(folder: Path) -> tuple[list[dict], dict]:
@@ -227,7 +262,9 @@ def _face_rows(folder: Path) -> tuple[list[dict], dict]:
     shards = folder / "shards" if (folder / "shards").is_dir() else folder
     faces = []
     for rec in iter_records(shards):
+        overlay = (rec.meta or {}).get("overlay_path")
         faces.append({"face_id": rec.face_id, "photo": shards / rec.photo_path if rec.photo_path else None,
+                      "overlay": shards / overlay if overlay else None,
                       "gt": shards / rec.gt_probe_path if rec.gt_probe_path else None, "status": rec.status,
                       "message": rec.message, "pixels": rec.num_pixels, "source": rec.source_path})
     metrics: dict = {}
@@ -243,6 +280,7 @@ def _face_block(face: dict, metrics: dict, est: Path, thumbs: _Thumbs) -> Html:
 
     fid = face["face_id"]
     figs = [_figure(thumbs.image(face["photo"]) if face["photo"] else None, "photo", f"photo {fid}"),
+            _figure(thumbs.image(face["overlay"]), "fit overlay", f"overlay {fid}") if face["overlay"] else None,
             _figure(thumbs.image(face["gt"], "probe") if face["gt"] else None, "ground truth", f"truth {fid}")]
     models = sorted(metrics.get(fid, {}))
     for m in models:
