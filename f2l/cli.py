@@ -559,9 +559,17 @@ def scale_report_cmd(
     model: str = typer.Option("sh9", "--model", "-m", help="Lighting model to estimate with."),
     image_size: int = typer.Option(96, help="Synthetic photo size in pixels."),
     grid: str = typer.Option("32x64", help="Lighting grid HxW."),
+    build: bool = typer.Option(False, "--build", help="Instead: build-dataset on a tree of face photos, local against --executor ray (f2l.pipeline.scale)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="--build: CPUs of the local Ray."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
 ) -> None:
     """Build and estimate synthetic datasets of several sizes: faces/minute, per-stage time, peak memory."""
+    if build:
+        from f2l.pipeline.scale import format_build_table, run_build_scale
+
+        rows = run_build_scale(tuple(faces), workers=workers)
+        typer.echo(json.dumps(rows) if json_out else format_build_table(rows))
+        return
     from f2l.estimate.scale import format_table, run_scale_report
 
     g = _grid(grid)
