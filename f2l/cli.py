@@ -567,7 +567,10 @@ def scale_report_cmd(
     if build:
         from f2l.pipeline.scale import format_build_table, run_build_scale
 
-        rows = run_build_scale(tuple(faces), workers=workers)
+        try:
+            rows = run_build_scale(tuple(faces), workers=workers)
+        except RuntimeError as exc:
+            _fail(str(exc))
         typer.echo(json.dumps(rows) if json_out else format_build_table(rows))
         return
     from f2l.estimate.scale import format_table, run_scale_report

@@ -27,7 +27,9 @@ OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional"}
 OPTIONAL_IMPORTS = {"ray": "ray",  # f2l estimate --executor ray (f2l/estimate/ray_executor.py)
                     # f2l render-faces (f2l/render/): the path tracer, the heads, and anny's kernel
                     # library (imported to quiet its start-up banner)
-                    "mitsuba": "render", "anny": "render", "warp": "render"}
+                    "mitsuba": "render", "anny": "render", "warp": "render",
+                    # f2l scale-report --build: its face photos are scikit-image's astronaut
+                    "skimage": "test"}
 
 # Declared dependencies that no file imports by name, and why.
 NOT_IMPORTED: dict[str, str] = {}

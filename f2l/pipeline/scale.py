@@ -34,7 +34,11 @@ print(json.dumps({"seconds": time.perf_counter() - t0, "records": summary.counts
 
 
 def write_face_tree(root: Path, faces: int, per_session: int = 10, seed: int = 0) -> None:
-    import skimage.data
+    try:
+        import skimage.data
+    except ImportError as exc:  # the photos come from scikit-image's astronaut (the test extra)
+        raise RuntimeError("scale-report --build needs scikit-image for its face photos: "
+                           "pip install 'f2l[test]'") from exc
     from PIL import Image, ImageEnhance
 
     from f2l.io.exr import write_exr
