@@ -329,6 +329,7 @@ def report(
     folder: Path = typer.Argument(..., help="An evaluation folder (shards/ + estimates/, e.g. demo_out) or a build-dataset output folder."),
     out: Optional[Path] = typer.Option(None, "--out", help="The HTML file (default FOLDER/report.html); thumbnails go to report_files/ beside it."),
     work: Optional[Path] = typer.Option(None, "--work", help="build-dataset's work folder: brackets, statuses and coverage per session."),
+    estimates: Optional[Path] = typer.Option(None, "--estimates", help="f2l estimate's output, evaluated (f2l evaluate) against FOLDER's shards (default FOLDER/estimates)."),
     page_size: int = typer.Option(200, "--page-size", min=1, help="Faces per page."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
@@ -337,7 +338,7 @@ def report(
 
     if not folder.is_dir():
         _fail(f"{folder}: not a folder")
-    summary = write_report(folder, out, work=work, page_size=page_size)
+    summary = write_report(folder, out, work=work, estimates=estimates, page_size=page_size)
     typer.echo(json.dumps(summary.to_json()) if json_out else
                f"wrote {summary.pages[0]} ({len(summary.pages)} pages, {summary.faces} faces; thumbnails "
                f"{summary.thumbnails_written} written, {summary.thumbnails_reused} reused)")

@@ -255,7 +255,7 @@ def _colour_table(face_colour: dict, work: Path | None) -> Html | None:
     return el("table", head, *rows)
 
 
-def _face_rows(folder: Path) -> tuple[list[dict], dict]:
+def _face_rows(folder: Path, est: Path) -> tuple[list[dict], dict]:
     """(records as dicts: face_id, photo, gt probe, status, pixels, source) and per-face metrics."""
     from f2l.io.shards import iter_records
 
@@ -268,7 +268,7 @@ def _face_rows(folder: Path) -> tuple[list[dict], dict]:
                       "gt": shards / rec.gt_probe_path if rec.gt_probe_path else None, "status": rec.status,
                       "message": rec.message, "pixels": rec.num_pixels, "source": rec.source_path})
     metrics: dict = {}
-    per_face = folder / "estimates" / "metrics_per_face.csv"
+    per_face = est / "metrics_per_face.csv"
     if per_face.is_file():
         for r in _read_csv(per_face):
             metrics.setdefault(r["face_id"], {})[r["model"]] = r
@@ -301,15 +301,18 @@ def _face_block(face: dict, metrics: dict, est: Path, thumbs: _Thumbs) -> Html:
 
 
 def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None, *, work: str | os.PathLike | None = None,
-                 page_size: int = 200, title: str | None = None) -> ReportSummary:
-    """Write ``out`` (default ``FOLDER/report.html``) and its thumbnails; returns what was written."""
+                 estimates: str | os.PathLike | None = None, page_size: int = 200,
+                 title: str | None = None) -> ReportSummary:
+    """Write ``out`` (default ``FOLDER/report.html``) and its thumbnails; returns what was written.
+    ``estimates``: the ``f2l estimate`` output evaluated against these shards (default
+    ``FOLDER/estimates``)."""
     folder = Path(folder)
     out = Path(out) if out is not None else folder / "report.html"
     out_dir = out.parent
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = ReportSummary()
     thumbs = _Thumbs(out_dir, summary)
-    est = folder / "estimates"
+    est = Path(estimates) if estimates is not None else folder / "estimates"
     card_path = folder / "dataset_card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
     top: list[Html] = []
@@ -322,7 +325,7 @@ def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None
     if card is not None:
         top += _warnings_section(card)
         top += _sessions_section(card, out_dir, folder, Path(work) if work else None, thumbs)
-    faces, metrics = _face_rows(folder) if (folder / "shards").is_dir() or list(folder.glob("part-*.parquet")) else ([], {})
+    faces, metrics = _face_rows(folder, est) if (folder / "shards").is_dir() or list(folder.glob("part-*.parquet")) else ([], {})
     summary.faces = len(faces)
     pages = [faces[i:i + page_size] for i in range(0, len(faces), page_size)] or [[]]
     names = [out.name] + [f"{out.stem}-{k + 1}{out.suffix}" for k in range(1, len(pages))]
