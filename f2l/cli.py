@@ -63,15 +63,20 @@ def _fail(message: str, code: int = 2) -> None:
 def models(json_out: bool = typer.Option(False, "--json", help="Machine-readable output.")) -> None:
     """List the installed lighting models (entry-point group f2l.lighting_models)."""
     from f2l.lighting.grid import LatLongGrid
-    from f2l.models.registry import discover
+    from f2l.models.registry import ModelNotFoundError, discover, load_model
 
     rows = []
-    grid = LatLongGrid(8, 16)
+    grid = LatLongGrid(16, 32)
     for name, info in discover().items():
-        row = {"name": name, "package": info.package, "target": info.target, "ok": info.ok}
+        row = {"name": name, "package": info.package, "target": info.target, "ok": info.ok,
+               "capabilities": list(info.capabilities)}
         if info.ok:
-            inst = info.cls(grid)
-            row.update(params=inst.num_params, domain=inst.domain, version=inst.version, description=inst.description)
+            try:
+                inst = load_model(name, grid)  # checks the declared capabilities on a small grid
+                row.update(params=inst.num_params, domain=inst.domain, version=inst.version,
+                           description=inst.description)
+            except ModelNotFoundError as exc:
+                row.update(ok=False, error=str(exc))
         else:
             row.update(error=info.error)
         rows.append(row)
@@ -79,16 +84,18 @@ def models(json_out: bool = typer.Option(False, "--json", help="Machine-readable
         typer.echo(json.dumps(rows, indent=2))
         return
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table(title="f2l lighting models")
-    for col in ("name", "params", "domain", "package", "description"):
+    for col in ("name", "params", "domain", "capabilities", "package", "description"):
         table.add_column(col)
     for r in rows:
+        caps = ", ".join(r["capabilities"]) or "-"
         if r["ok"]:
-            table.add_row(r["name"], str(r["params"]), r["domain"], r["package"], r["description"])
+            table.add_row(r["name"], str(r["params"]), r["domain"], caps, r["package"], r["description"])
         else:
-            table.add_row(r["name"], "-", "-", r["package"], f"[red]failed to load: {r['error']}[/red]")
+            table.add_row(r["name"], "-", "-", caps, r["package"], f"[red]failed to load: {escape(r['error'])}[/red]")
     Console().print(table)
 
 

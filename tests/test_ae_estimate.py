@@ -1,4 +1,4 @@
-"""The shipped sky-autoencoder model: face estimation (f2l.ae.estimate through f2l.estimate.estimate) and
+"""The shipped sky-autoencoder model: face estimation (f2l.estimate.latent through f2l.estimate.estimate) and
 probe fits (fit-probe's ae / ae_ff), on skies of the autoencoder's own corpus generator."""
 
 from __future__ import annotations
@@ -139,7 +139,7 @@ def test_clipped_pixels_reach_the_latent_sky_fit(model, face_under_corpus_sky):
     """ae reads a face's partly clipped pixels as sunsky does: clipped channels as lower bounds."""
     import torch
 
-    from f2l.ae.estimate import LatentSkyProblem
+    from f2l.estimate.latent import LatentSkyProblem
     from f2l.estimate import EstimatorConfig, FaceObservation
 
     face, _ = face_under_corpus_sky

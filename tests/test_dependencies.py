@@ -20,7 +20,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
-OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional"}
+OWN = {"f2l", "f2l_builtin_models", "f2l_example_directional", "f2l_example_gradient_sun"}
 
 # Optional by design: imported only inside a function, in a try that turns the ImportError into
 # an error naming the extra. Module -> the [project.optional-dependencies] extra declaring it.
@@ -30,6 +30,12 @@ OPTIONAL_IMPORTS = {"ray": "ray",  # f2l estimate --executor ray (f2l/estimate/r
                     "mitsuba": "render", "anny": "render", "warp": "render",
                     # f2l scale-report --build: its face photos are scikit-image's astronaut
                     "skimage": "test"}
+
+# Files only pytest loads (f2l's pytest11 fixtures for plugin authors, the example plugins' tests):
+# their imports may come from the "test" extra.
+def _pytest_loaded(path: str) -> bool:
+    return path.endswith("pytest_plugin.py") or "/tests/" in path
+
 
 # Declared dependencies that no file imports by name, and why.
 NOT_IMPORTED: dict[str, str] = {}
@@ -94,7 +100,7 @@ def test_imports_are_declared():
         if not dists:
             problems.append(f"{module} (imported by {where}) is not installed in the test environment")
         elif not dists & declared:
-            extra = OPTIONAL_IMPORTS.get(module)
+            extra = OPTIONAL_IMPORTS.get(module) or ("test" if all(map(_pytest_loaded, files)) else None)
             if extra is None or not dists & extras.get(extra, set()):
                 problems.append(f"{module} ({', '.join(sorted(dists))}) imported by {where} is not declared"
                                 + (f" in the extra {extra!r}" if extra else ""))

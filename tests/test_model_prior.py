@@ -284,7 +284,7 @@ def test_build_prior_errors():
     from f2l.models.registry import load_model
 
     sh9 = load_model("sh9", GRID)
-    assert not hasattr(sh9, "prior_features")
+    assert sh9.prior_feature_names is None and sh9.prior_features(np.ones((1, sh9.num_params))) is None
     with pytest.raises(ValueError, match="sh9.*prior_features"):
         build_prior(sh9, _records_from_params(np.ones((5, sh9.num_params))))
     with pytest.raises(ValueError, match="no probe could be fitted"):

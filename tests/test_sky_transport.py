@@ -439,12 +439,12 @@ def test_search_finds_the_sun(face, face_transport, model, which):
     cfg = EstimatorConfig()
     assert starts.shape == (cfg.sun_starts, len(model.param_names))
     layout = model.sun_layout
-    assert abs(starts[0, layout["elevation"]] - np.clip(best.elevation_rad, 0.01, math.pi / 2 - 0.01)) < 1e-12
-    sunny = [direction_from_angles(s[layout["elevation"]], s[layout["azimuth"]]) for s in starts[:-1]]
+    assert abs(starts[0, layout.elevation] - np.clip(best.elevation_rad, 0.01, math.pi / 2 - 0.01)) < 1e-12
+    sunny = [direction_from_angles(s[layout.elevation], s[layout.azimuth]) for s in starts[:-1]]
     for i in range(len(sunny)):
         for j in range(i):
             assert _angle_deg(sunny[i], sunny[j]) >= 25.0
-    assert starts[-1, list(layout["sun_rgb"])].max() < 1e-2 * starts[-1, list(layout["sky_rgb"])].min()
+    assert starts[-1, list(layout.sun_rgb)].max() < 1e-2 * starts[-1, list(layout.sky_rgb)].min()
 
 
 def test_distinct_keeps_separation():

@@ -14,7 +14,7 @@ from f2l.io.exr import read_exr, write_exr
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.models import load_model
 from f2l_builtin_models import preetham
-from f2l_builtin_models.sun_lobe import sun_lobe
+from f2l.lighting.sun_lobe import sun_lobe
 from f2l_builtin_models.sunsky import SunSky, rgb_luminance_weights, xyz_to_rgb_matrix
 
 GRID = LatLongGrid(64, 128)

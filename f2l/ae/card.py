@@ -31,7 +31,7 @@ ENCODING_NOTE = ("e = (l / s)^(1/3), s = the sky's mean Rec.709 luminance (z_0 =
 @torch.no_grad()
 def heldout_report(ae, cache, index: np.ndarray, batch: int = 64) -> dict:
     """Held-out errors of the feed-forward reconstructions (module docstring)."""
-    from f2l.ae.train import loss_weights, weighted_l1
+    from f2l.ae.loss import loss_weights, weighted_l1
     from f2l.metrics.lighting import PROBE_METRIC_NAMES, is_overcast, probe_metrics
 
     if len(index) == 0:

@@ -41,9 +41,9 @@ def list_sky_files(folder: str | Path) -> list[Path]:
 
 def read_sky_file(path: str | Path) -> np.ndarray:
     """(H, W, 3) float32 linear RGB of an EXR or Radiance HDR; ValueError naming the file."""
-    from f2l.io.exr import read_probe_image
+    from f2l.io.probe_io import read_hdr_image
 
-    return read_probe_image(path)
+    return read_hdr_image(path)
 
 
 def prepare_sky(path: str | Path, azimuth: float | None = None) -> tuple[np.ndarray, float, float]:

@@ -37,7 +37,7 @@ import torch
 
 from f2l.ae import card as card_mod
 from f2l.ae.data import SkyCache, build_cache, holdout_mask, list_sky_files
-from f2l.ae.encoding import sky_solid_angles
+from f2l.ae.loss import loss_weights, weighted_l1, weighted_l2  # noqa: F401  (re-exported)
 from f2l.ae.model import SkyAE
 from f2l.ae.prior import encode_skies, fit_latent_prior, prior_path
 from f2l.ae.weights import companion, save_weights
@@ -66,23 +66,6 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d.pop("threads")
         return d
-
-
-def loss_weights() -> torch.Tensor:
-    """(1, 1, 32, 128) dOmega / (3 sum dOmega): the L1 loss's texel weights (sum over c = 1)."""
-    sa = sky_solid_angles()
-    return torch.as_tensor(sa / (3.0 * sa.sum()), dtype=torch.float32)[None, None]
-
-
-def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """(B,) solid-angle-weighted mean absolute error of encoded skies (B, 3, 32, 128)."""
-    return ((pred - target).abs() * weights).sum((1, 2, 3))
-
-
-def weighted_l2(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """(B,) solid-angle-weighted mean squared error of encoded skies (B, 3, 32, 128)."""
-    d = pred - target
-    return (d * d * weights).sum((1, 2, 3))
 
 
 def _lr(cfg: TrainConfig, step: int, total: int) -> float:

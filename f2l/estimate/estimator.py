@@ -19,95 +19,20 @@ from __future__ import annotations
 import functools
 
 import time
-from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 import torch
 
+from f2l.estimate.config import EstimateResult, EstimatorConfig  # noqa: F401  (re-exported)
+from f2l.estimate.latent import estimate_latent_sky
 from f2l.estimate.observation import (BLACK_LEVEL, CLIP_LEVEL, EstimationError, FaceObservation,  # noqa: F401
                                       clipped_pixels, highlight_pixels, usable_pixels)
 from f2l.estimate.params import BoxTransform
 from f2l.estimate.skin import _albedo_gmm_terms, albedo_prior_nll, skin_albedo_gmm, skin_albedo_mean
 from f2l.models.base import LightingModel
+from f2l.models.capabilities import CompactSun, LatentSky, LinearRadiance, SunAngles
 from f2l.transport import Transport
-
-@dataclass
-class EstimatorConfig:
-    charbonnier_eps: float = 1e-6
-    light_prior_weight: float = 1e-3
-    albedo_prior_weight: float = 1e-3
-    negativity_weight: float = 1.0
-    max_iter: int = 18
-    tolerance: float = 1e-4
-    max_pixels: int | None = None  # subsample usable pixels (deterministic) for speed
-    lowrank_k: int = 96
-    threads: int = 2
-    seed: int = 0
-    fixed_albedo: tuple[float, float, float] | None = None
-    ground_albedo_init: float = 0.2
-    albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
-    # IRLS iterations for linear models, before and after the albedo split: caps; each round stops
-    # once its estimated distance to the fixed point is below `irls_tolerance` (relative, see
-    # linear.solve_psi). On the 12 demo faces 20 of 24 SH fits stop by that rule (40-154
-    # iterations), the rest at the caps; (40, 12) stopped 5e-6 to 3.5e-2 (of max|theta|) short of
-    # the fixed point, the former (18, 6) further still. §5.1 metrics move by <= 0.3% between them.
-    irls_iters: tuple[int, int] = (150, 50)
-    irls_tolerance: float = 1e-6
-    # the first `irls_warm_iters` of the first round run on every `irls_warm_stride`-th pixel:
-    # that half-size problem's optimum is a start that 4 full iterations polish (psi within
-    # 2.8e-3 of the optimum, as close as 20 full iterations, in 11/20 of the time)
-    irls_warm_iters: int = 14
-    irls_warm_stride: int = 2
-    # IRLS weights 1 / (2 max(C(r), floor * scale)): the Charbonnier term (eps = 1e-6) is |r|-like,
-    # and with a tiny floor the pixels that fit almost exactly get weights so large that float32
-    # rounding moves the solution (0.5% across CPU code paths, issue 18) and IRLS crawls. See
-    # linear.solve_psi for the choice of floor.
-    irls_floor: float = 1e-3
-    # sun models (``radiance_parts``): hybrid sky transport and the global sun search
-    sun_starts: int = 3  # search candidates refined by L-BFGS: distinct suns (>= 25 deg apart) + no sun
-    sun_core_texels: int = 48  # lobe texels with exact visibility (sky_transport.py)
-    sun_kappa_init: float = 6000.0
-    sun_max_pixels: int | None = 2048  # evenly spaced usable pixels for sun models
-    sun_all_starts_iters: int = 4  # L-BFGS iterations on every start, then the best one alone
-    # after those, a solution whose sun share (_sun_share) is below this is overcast: the rest of
-    # the fit skips the exact sun core (f2l bench shows the time saved and the error cost); 0 = never
-    sun_core_min_share: float = 0.02
-    # (elevation_rad, sigma_rad) from the photo's time and place (f2l.io.capture), or None; the
-    # runner fills it per record when sun_prior_from_capture (CLI: --no-sun-prior turns it off)
-    sun_elevation_prior: tuple[float, float] | None = None
-    sun_prior_weight: float = 1e-3
-    sun_prior_from_capture: bool = True
-    sun_prior_sigma_rad: float = 0.05  # ~3 deg: the camera's tilt and the face fit's up vector
-    # leave out pixels that look like specular highlights (usable_pixels / highlight_pixels); None
-    # keeps them. At 1.0 it helped the tuning half of `make eval-real` (ae mean Sun-ang 21.4 ->
-    # 14.1 deg, sunsky 15.3 -> 13.5) but not the reporting half (sunsky 20.7 -> 22.6): off by default
-    highlight_mad: float | None = None
-    # sun models (sunsky's ``radiance_parts``, ae's latent sky): clipped face pixels read channel
-    # by channel, clipped channels as lower bounds (clipped_pixels). On the tuning half of `make
-    # eval-real` sunsky's mean Sun-ang 15.4 -> 13.0 deg, ae's 21.2 -> 19.8; on the reporting half
-    # sunsky's median 12.9 -> 11.1 (mean unchanged), ae's mean 22.3 -> 21.4; +18-20% time in
-    # `f2l bench`. README "What each change bought".
-    clipped_bounds: bool = True
-    clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
-
-
-@dataclass
-class EstimateResult:
-    params: np.ndarray
-    param_names: list[str]
-    albedo: np.ndarray
-    ground_albedo: float | None
-    loss: float
-    iterations: int
-    converged: bool
-    runtime_s: float
-    probe: np.ndarray  # (H, W, 3) float32, ground included, >= 0
-    sun_direction: np.ndarray | None
-    timings: dict = field(default_factory=dict)
-    start_losses: list = field(default_factory=list)
-    num_pixels_used: int = 0
-
 
 class _Problem:
     """Precomputed, per-face pieces of the objective."""
@@ -121,7 +46,7 @@ class _Problem:
         idx = usable_pixels(obs, cfg.highlight_mad)
         if cfg.max_pixels and idx.size > cfg.max_pixels:
             idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_pixels, replace=False))
-        if hasattr(model, "radiance_parts") and cfg.sun_max_pixels and idx.size > cfg.sun_max_pixels:
+        if isinstance(model, CompactSun) and cfg.sun_max_pixels and idx.size > cfg.sun_max_pixels:
             idx = idx[np.round(np.linspace(0, idx.size - 1, cfg.sun_max_pixels)).astype(np.int64)]
         self.idx = idx
         transport = Transport(obs.visibility_bits[idx], np.asarray(obs.normals, np.float64)[idx], self.grid)
@@ -136,15 +61,16 @@ class _Problem:
         self.e_sky = torch.as_tensor(upward, dtype=dtype)  # E_h = e_sky . l_sky
         sky_cols = np.zeros(L, dtype=bool)
         sky_cols[: self.L_sky] = True
-        if self.sky and hasattr(model, "radiance_parts"):  # ground rows summed from their bits
+        if self.sky and isinstance(model, CompactSun):  # ground rows summed from their bits
             ground_rows = grid.height - grid.sky_rows
             g = transport.block_sums(ground_rows, (ground_rows, 4), first_row=grid.sky_rows).sum(1)
             self.g = torch.as_tensor(g, dtype=dtype)
         elif self.sky:
             self.g = torch.as_tensor(transport.row_sums(~sky_cols), dtype=dtype)  # T_gnd 1
-        basis = model.linear_basis()
+        basis = model.linear_basis() if isinstance(model, LinearRadiance) else None
         self.linear = basis is not None
         self.hybrid = None
+        self.clip_hybrid = None
         if self.linear:
             basis = np.asarray(basis, dtype=np.float64)
             if self.sky:
@@ -159,7 +85,7 @@ class _Problem:
             self.neg_basis = torch.as_tensor(basis[sel], dtype=dtype)
             self.neg_weights = torch.as_tensor(grid.solid_angles_flat[sel] / grid.solid_angles_flat[sel].sum(), dtype=dtype)
             self.TB = torch.as_tensor(transport.project(basis), dtype=dtype)  # (N, K)
-        elif self.sky and hasattr(model, "radiance_parts"):
+        elif self.sky and isinstance(model, CompactSun):
             from f2l.estimate.sky_transport import SkyTransport
 
             self.hybrid = SkyTransport(transport, grid, core_texels=cfg.sun_core_texels)
@@ -254,13 +180,13 @@ class _Problem:
         pred = albedo[:, None, :] * tl
         resid = pred - self.target[None]
         data = torch.sqrt(resid * resid + cfg.charbonnier_eps**2).mean((1, 2)) / self.target_scale
-        if getattr(self, "clip_hybrid", None) is not None:
+        if self.clip_hybrid is not None:
             n = resid.shape[1] * resid.shape[2]
             data = data + self.clipped_term(self._sky_parts, albedo, ground_albedo) / (n * self.target_scale)
         total = data + cfg.light_prior_weight * self.model.prior_nll(params)
-        if cfg.sun_elevation_prior is not None and self.hybrid is not None:
+        if cfg.sun_elevation_prior is not None and isinstance(self.model, SunAngles):
             el0, sigma = cfg.sun_elevation_prior
-            z = (params[:, self.model.sun_layout["elevation"]] - el0) / sigma
+            z = (params[:, self.model.sun_angles.elevation] - el0) / sigma
             total = total + cfg.sun_prior_weight * 0.5 * z * z
         if cfg.fixed_albedo is None:
             total = total + cfg.albedo_prior_weight * albedo_prior_nll(albedo)
@@ -277,7 +203,7 @@ class _Problem:
 
     # -- initial points ----------------------------------------------------------------------------------
     def sun_search_starts(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
-        """(S, P) starts from the global sun search (sun_search.py) for a ``radiance_parts`` model."""
+        """(S, P) starts from the global sun search (sun_search.py) for a ``compact-sun`` model."""
         from f2l.estimate import sun_search
         from f2l.lighting.grid import LatLongGrid as Grid
 
@@ -292,14 +218,12 @@ class _Problem:
         el, az = np.arcsin(np.clip(d[:, 1], -1, 1)), np.arctan2(d[:, 0], -d[:, 2])
         shapes = model.search_shapes()
         params = np.repeat(shapes[None], len(texels), axis=0)  # (k, S, P)
-        params[:, :, layout["elevation"]] = el[:, None]
-        params[:, :, layout["azimuth"]] = az[:, None]
+        params[:, :, layout.elevation] = el[:, None]
+        params[:, :, layout.azimuth] = az[:, None]
         br, bc = self.hybrid.block
         coarse = type(model)(Grid(grid.height // br, grid.width // bc))
-        with torch.no_grad():  # the shapes have no sun: the model's sky alone when it has one
-            flat = torch.as_tensor(params.reshape(-1, params.shape[-1]))
-            sky_of = getattr(coarse, "sky", None) or coarse.radiance
-            sky = sky_of(flat)[:, : coarse.grid.sky_rows * coarse.grid.width].numpy()
+        with torch.no_grad():  # the unit-weight sky of each shape (compact-sun's ``sky``)
+            sky = coarse.sky(torch.as_tensor(params.reshape(-1, params.shape[-1]))).to(torch.float64).numpy()
         k, S = params.shape[:2]
         sky_blocks = sky.reshape(k, S, -1, 3)
         e_blocks = np.bincount(self.hybrid.block_of, weights=self.e_sky.numpy(), minlength=sky_blocks.shape[2])
@@ -310,11 +234,12 @@ class _Problem:
         for c in sunny + found[-1:]:
             p = shapes[c.shape].copy()
             lum = max(float(c.psi_sky.mean()), float(c.psi_sun.mean()) * 1e-3, 1e-12)
-            p[list(layout["sky_rgb"])] = np.maximum(c.psi_sky / albedo, 1e-3 * lum)
-            p[list(layout["sun_rgb"])] = np.maximum(c.psi_sun / albedo, 1e-4 * lum)
-            p[layout["elevation"]] = np.clip(c.elevation_rad, 0.01, 0.5 * np.pi - 0.01)
-            p[layout["azimuth"]] = c.azimuth_rad
-            p[layout["kappa"]] = cfg.sun_kappa_init
+            p[list(layout.sky_rgb)] = np.maximum(c.psi_sky / albedo, 1e-3 * lum)
+            p[list(layout.sun_rgb)] = np.maximum(c.psi_sun / albedo, 1e-4 * lum)
+            p[layout.elevation] = np.clip(c.elevation_rad, 0.01, 0.5 * np.pi - 0.01)
+            p[layout.azimuth] = c.azimuth_rad
+            if layout.kappa is not None:
+                p[layout.kappa] = cfg.sun_kappa_init
             starts.append(p)
         self.search_candidates = found
         return np.stack(starts)
@@ -333,9 +258,7 @@ class _Problem:
 def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig | None = None) -> EstimateResult:
     """Estimate lighting, albedo and ground albedo for one face with ``model``."""
     cfg = config or EstimatorConfig()
-    if getattr(model, "latent_sky", False):  # sky decoders (the autoencoder): batched starts, f2l.ae.estimate
-        from f2l.ae.estimate import estimate_latent_sky
-
+    if isinstance(model, LatentSky):  # decoded latent skies: batched start search (f2l.estimate.latent)
         return estimate_latent_sky(obs, model, cfg)
     t_start = time.perf_counter()
     dtype = torch.float64
@@ -367,7 +290,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         initial = prob.sun_search_starts(albedo_starts[0], cfg.ground_albedo_init)
         # the azimuth is periodic: optimise it unbounded (a sigmoid would pin suns behind the head)
         lo, hi = lo.copy(), hi.copy()
-        lo[model.sun_layout["azimuth"]], hi[model.sun_layout["azimuth"]] = -np.inf, np.inf
+        lo[model.sun_layout.azimuth], hi[model.sun_layout.azimuth] = -np.inf, np.inf
         box = BoxTransform(lo, hi)
     else:
         initial = [] if prob.linear else model.initial_points()
@@ -392,7 +315,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     # slowed by the albedo-exposure ambiguity. Other models keep the weights.
     weight_idx = None
     if prob.hybrid is not None:
-        weight_idx = list(model.sun_layout["sky_rgb"]) + list(model.sun_layout["sun_rgb"])
+        weight_idx = list(model.sun_layout.sky_rgb) + list(model.sun_layout.sun_rgb)
         theta0 = theta0.copy()
         theta0[:, weight_idx] *= np.tile(rho0, 2)
     x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
@@ -476,7 +399,7 @@ def _estimate_linear(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_start
 
     BLAS runs single-threaded here: the K x K systems and the 3-variable albedo split are too
     small to share, and waking OpenBLAS's second thread for each of them cost more than the
-    whole fit on 2 cores (0.16 s against 0.09 s for sh25, docs/performance.md).
+    whole fit on 2 cores (0.16 s against 0.09 s for 25 SH bands, docs/performance.md).
     """
     with _blas_controller().limit(limits=1, user_api="blas"):
         return _estimate_linear_fit(obs, model, cfg, prob, t_start)
@@ -570,8 +493,8 @@ def _sun_share(model, params: np.ndarray) -> float:
     irradiance under a sun at the zenith and a uniform sky of the same mean radiance."""
     layout = model.sun_layout
     luma = np.array([0.2126, 0.7152, 0.0722])
-    sun = float(np.maximum(params[list(layout["sun_rgb"])], 0) @ luma)
-    sky = float(np.maximum(params[list(layout["sky_rgb"])], 0) @ luma)
+    sun = float(np.maximum(params[list(layout.sun_rgb)], 0) @ luma)
+    sky = float(np.maximum(params[list(layout.sky_rgb)], 0) @ luma)
     return sun / max(sun + np.pi * sky, 1e-300)
 
 

@@ -1,4 +1,4 @@
-"""Fast exact path for models linear in their parameters (``linear_basis``), e.g. SH9/SH25.
+"""Fast exact path for models linear in their parameters (capability ``linear``: ``linear_basis``), e.g. spherical harmonics.
 
 With radiance l = B theta (per channel) and shading s = rho ⊙ (T B theta), the data term depends
 only on psi_c = rho_c theta_c, so the objective of ``estimator.py`` splits into
@@ -91,10 +91,10 @@ def solve_psi(
 
 def prior_diag_for(model, theta: np.ndarray, rho: np.ndarray, weight: float) -> np.ndarray:
     """Quadratic majoriser of weight * prior_nll around theta, expressed for psi = rho * theta."""
-    quad = getattr(model, "prior_precision", None)
-    if quad is None:
+    prec = model.prior_precision(theta)
+    if prec is None:
         return np.zeros_like(theta)
-    prec_theta = np.asarray(quad(theta), dtype=np.float64)  # (K, 3) diag precision in theta units
+    prec_theta = np.asarray(prec, dtype=np.float64)  # (K, 3) diag precision in theta units
     # 0.5 * p * theta^2 = 0.5 * p / rho^2 * psi^2 ; objective carries `weight`
     return weight * prec_theta / (rho[None, :] ** 2)
 
@@ -111,8 +111,8 @@ def solve_albedo(model, psi: np.ndarray, rho0: np.ndarray, light_w: float, albed
 
     r0 = np.clip(rho0, 1e-3, 1 - 1e-3)
     x0 = np.log(r0) - np.log1p(-r0)
-    prior_np = getattr(model, "prior_nll_numpy", None)
-    if prior_np is not None and gmm_terms is not None:
+    prior_np = model.prior_nll_numpy  # LinearRadiance: None when the model has no numpy form
+    if gmm_terms is not None and prior_np((psi / r0[None, :]).reshape(-1)) is not None:
         lognorm, means, precs = gmm_terms
         def fun(x: np.ndarray):
             rho = 1.0 / (1.0 + np.exp(-x))

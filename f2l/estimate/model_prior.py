@@ -2,7 +2,7 @@
 
 A model that supports a prior maps its parameter vectors to a *feature* vector (its
 ``prior_features(params)``, numpy (n, P) -> (n, D), and the torch twin
-``prior_features_torch``), e.g. for Sun+Sky: sun elevation, turbidity, log κ, the sun-to-sky
+``prior_features_torch``), e.g. for a sun-plus-sky model: sun elevation, turbidity, log κ, the sun-to-sky
 intensity ratio and colours; never the azimuth (the camera's heading is arbitrary) nor the
 absolute exposure. A Gaussian mixture (scikit-learn, full covariances) over those features of a
 corpus of fitted probes is the prior: ψ_l(θ) = −log Σ_k π_k N(f(θ); μ_k, Σ_k), and its means give

@@ -3,8 +3,8 @@ project's default training corpus (``f2l sky-corpus``).
 
 Default corpus: ``f2l sky-corpus --out skies/ --n 400 --seed 0`` writes 400 float32 EXR probes
 (64 x 128) from :func:`f2l.synth.skies.random_sky`: CIE 2003 standard clear skies (type 12,
-Perez form with the CIE's coefficients, not Preetham's, so the Sun+Sky prior is not fitted to its
-own model) with a vMF sun (κ = 8192) whose colour and intensity follow Rayleigh + aerosol
+Perez form with the CIE's coefficients, not those of a model's own sky formula, so a prior is not fitted
+to its own model) with a vMF sun (κ = 8192) whose colour and intensity follow Rayleigh + aerosol
 extinction, sun elevation 5–80°, any azimuth, turbidity 2–6, and 25% CIE overcast skies. Each
 probe has a JSON side file with its kind and sun direction. Any other folder of lat-long sky EXRs
 works the same (e.g. captured probes from ``f2l ingest``).
@@ -150,14 +150,13 @@ def fit_probes(paths: list[Path], model, progress: Callable | None = None,
 def build_prior(model, records: list[ProbeRecord], n_components: int = 6, seed: int = 0,
                 corpus: dict | None = None) -> GmmPrior:
     """A GMM over ``model.prior_features`` of the successfully fitted probes."""
-    features_fn = getattr(model, "prior_features", None)
-    if features_fn is None:
+    if model.prior_feature_names is None:
         raise ValueError(f"model {model.name!r} has no prior_features(): it does not support a GMM prior")
     ok = [r for r in records if r.status == "ok"]
     if not ok:
         raise ValueError("no probe could be fitted; see the per-probe messages")
     params = np.asarray([r.params for r in ok], dtype=np.float64)
-    features = np.asarray(features_fn(params), dtype=np.float64)
+    features = np.asarray(model.prior_features(params), dtype=np.float64)
     provenance = {"probes": len(records), "fitted": len(ok), **(corpus or {})}
     return fit_gmm(features, list(model.prior_feature_names), n_components=n_components, seed=seed,
                    model=model.name, corpus=provenance)

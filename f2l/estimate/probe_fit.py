@@ -12,7 +12,7 @@ second term — the squared relative error of each channel's energy, smooth — 
 intensity parameters (``model.intensity_params``) are optimised as log(value / s): a probe and
 a 10⁶ × brighter copy give the same parameters up to the intensity scale. Multi-start quasi-Newton (torch L-BFGS, all starts batched) from the
 model's ``probe_starts(probe_flat)`` when it has them (data-driven starts, e.g. the sun at the
-brightest texel: 2 such starts fit a Sun+Sky probe to 0.01° of its sun in ~4 s, where the 8
+brightest texel: 2 such starts fit a compact-sun probe to 0.01° of its sun in ~4 s, where the 8
 generic starts took ~10 s and landed 0.3° off, because one L-BFGS over the batch's summed loss
 lets the worst start slow the others), otherwise from ``initial_points()``.
 """
@@ -47,7 +47,7 @@ class ProbeFitError(ValueError):
 class ProbeFit:
     """params (P,), loss, L-BFGS iterations, fitted radiance (H, W, 3) float32, the model's sun
     direction (or None), wall time, the loss of every start, and named variant fits of the same
-    probe that a model's own routine may add (e.g. the autoencoder's feed-forward ``ae_ff``)."""
+    probe that a model's own routine may add (e.g. a latent model's feed-forward encoding)."""
 
     params: np.ndarray
     loss: float
@@ -98,15 +98,15 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
 
     A probe on another lat-long grid is resampled (energy-preserving) to the model's grid.
     ``starts`` (S, P) replaces the model's starting points. A model with its own fit-to-probe
-    routine (``model.fit_to_probe(probe, **options)``, e.g. the sky autoencoder) gets the checked,
+    routine (``model.fit_to_probe(probe, **options)`` not None, e.g. an encoder) gets the checked,
     resampled probe and these options and returns the ProbeFit itself.
     """
     t0 = time.perf_counter()
     grid = model.grid
     probe = _check_probe(probe, grid)
-    own_fit = getattr(model, "fit_to_probe", None)
-    if own_fit is not None:
-        return own_fit(probe, max_iter=max_iter, tolerance=tolerance, starts=starts, threads=threads)
+    own = model.fit_to_probe(probe, max_iter=max_iter, tolerance=tolerance, starts=starts, threads=threads)
+    if own is not None:
+        return own
     target_np = probe.reshape(-1, 3)
     domain = grid.upper_mask.reshape(-1) if model.domain == "sky" else np.ones(grid.size, bool)
     w = np.where(domain, grid.solid_angles_flat, 0.0)
@@ -116,14 +116,14 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
         raise ProbeFitError("probe is black over the model's domain")
 
     if starts is None:
-        probe_starts = getattr(model, "probe_starts", None)
-        starts = (model.initial_points() if probe_starts is None else probe_starts(target_np))
+        starts = model.probe_starts(target_np)
+        starts = model.initial_points() if starts is None else starts
     starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
     lo, hi = model.bounds()
     starts = np.clip(starts, lo, hi)
     # Intensity parameters (radiance ~ linear in them, e.g. w_sky, w_sun) are fitted as the log
     # of their value over the probe's scale s, so the fit is the same for any exposure.
-    log_idx = np.asarray(getattr(model, "intensity_params", ()), dtype=np.int64)
+    log_idx = np.asarray(model.intensity_params, dtype=np.int64)
     lo_x, hi_x = lo.copy(), hi.copy()
     lo_x[log_idx], hi_x[log_idx] = -np.inf, np.inf
     box = BoxTransform(lo_x, hi_x)

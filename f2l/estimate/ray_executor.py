@@ -25,13 +25,13 @@ class RecordEstimator:
     """Per-worker state for ``map_batches``: estimates every (record, model) of a batch."""
 
     def __init__(self, models: list[str], out_dir: str, cfg, done: set, threads: int) -> None:
-        from f2l.estimate.runner import torch_threads
+        from f2l.estimate.record import torch_threads
 
         torch_threads(threads)
         self.models, self.out_dir, self.cfg, self.done = models, out_dir, cfg, done
 
     def __call__(self, batch: pa.Table) -> pa.Table:
-        from f2l.estimate.runner import _base_row, estimate_record
+        from f2l.estimate.record import _base_row, estimate_record
         from f2l.io.shards import FaceRecord
         from f2l.io.tables import rows_to_table, table_row
 

@@ -11,10 +11,7 @@ skipped, and a killed run keeps what it finished (:mod:`f2l.estimate.resume`).
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import json
-import math
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -23,148 +20,12 @@ from pathlib import Path
 
 
 from f2l import __version__
-from f2l.estimate.estimator import EstimationError, EstimatorConfig, FaceObservation, estimate
+from f2l.estimate.estimator import EstimatorConfig
+from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior,  # noqa: F401
+                                 config_hash, estimate_record, torch_threads)
 
 ESTIMATES_FILE = "estimates.parquet"
 RUN_FILE = "run.json"
-
-_MODEL_CACHE: dict = {}
-
-
-def config_hash(model_name: str, model_version: str, cfg: EstimatorConfig) -> str:
-    payload = json.dumps({"model": model_name, "version": model_version, "f2l": __version__, "cfg": asdict(cfg)}, sort_keys=True)
-    return hashlib.sha256(payload.encode()).hexdigest()[:16]
-
-
-def _get_model(name: str, grid):
-    from f2l.models.registry import load_model
-
-    key = (name, grid.height, grid.width)
-    if key not in _MODEL_CACHE:
-        _MODEL_CACHE[key] = load_model(name, grid)
-    return _MODEL_CACHE[key]
-
-
-def _base_row(record_like: dict, model: str) -> dict:
-    return {
-        "face_id": record_like.get("face_id") or "",
-        "source_path": record_like.get("source_path") or "",
-        "model": model,
-        "model_version": "",
-        "params": [],
-        "param_names": [],
-        "albedo": [],
-        "ground_albedo": None,
-        "sun_direction": None,
-        "loss": None,
-        "iterations": 0,
-        "converged": False,
-        "status": "error",
-        "message": "",
-        "runtime_s": 0.0,
-        "probe_path": None,
-        "preview_path": None,
-        "grid_height": int(record_like.get("grid_height") or 0),
-        "grid_width": int(record_like.get("grid_width") or 0),
-        "config_hash": "",
-        "timings_json": "{}",
-    }
-
-
-def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig) -> dict:
-    """Estimate one face with one model; never raises for a bad face (status in the row)."""
-    from f2l.io.exr import write_exr
-    from f2l.io.preview import save_png, tonemap
-    from f2l.lighting.grid import LatLongGrid
-
-    torch_threads(cfg.threads)
-    row = _base_row({"face_id": record.face_id, "source_path": record.source_path,
-                     "grid_height": record.grid_height, "grid_width": record.grid_width}, model_name)
-    t0 = time.perf_counter()
-    try:
-        grid = LatLongGrid(record.grid_height, record.grid_width)
-        model = _get_model(model_name, grid)
-        row["model_version"] = str(model.version)
-        row["config_hash"] = config_hash(model_name, model.version, cfg)
-        obs = FaceObservation(
-            normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
-            visibility_bits=record.visibility_bits, grid=grid, face_id=record.face_id,
-        )
-        run_cfg, prior_note = cfg, ""
-        if cfg.sun_prior_from_capture and hasattr(model, "sun_layout"):
-            prior, prior_note = capture_sun_prior(record, cfg.sun_prior_sigma_rad)
-            if prior is not None:
-                run_cfg = dataclasses.replace(cfg, sun_elevation_prior=prior)
-        result = estimate(obs, model, run_cfg)
-        safe_id = _safe_name(record.face_id)
-        probe_rel = f"probes/{model_name}/{safe_id}.exr"
-        preview_rel = f"previews/{model_name}/{safe_id}.png"
-        (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
-        (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
-        write_exr(Path(out_dir) / probe_rel, result.probe,
-                  metadata={"f2l_model": model_name, "f2l_face_id": record.face_id, "f2l_convention": "latlong,+Y up,centre=-Z"})
-        save_png(Path(out_dir) / preview_rel, tonemap(result.probe))
-        row.update(
-            params=[float(v) for v in result.params],
-            param_names=list(result.param_names),
-            albedo=[float(v) for v in result.albedo],
-            ground_albedo=result.ground_albedo,
-            sun_direction=None if result.sun_direction is None else [float(v) for v in result.sun_direction],
-            loss=float(result.loss),
-            iterations=int(result.iterations),
-            converged=bool(result.converged),
-            status="ok",
-            message=prior_note,
-            probe_path=probe_rel,
-            preview_path=preview_rel,
-            timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
-        )
-    except EstimationError as exc:
-        row.update(status="bad_face", message=f"{record.face_id}: {exc}")
-    except Exception as exc:  # noqa: BLE001 - one failure never stops the batch
-        row.update(status="error", message=f"{record.face_id}: {type(exc).__name__}: {exc}")
-    row["runtime_s"] = time.perf_counter() - t0
-    return row
-
-
-def capture_sun_prior(record, sigma_rad: float) -> tuple[tuple[float, float] | None, str]:
-    """(elevation_rad, sigma_rad) of the sun when the record says when and where it was taken
-    (``meta["capture"]``, else the EXIF of its source photo; f2l.io.capture), and a note.
-
-    The camera's heading is unknown, so only the elevation is used; the grid's +Y is taken as
-    the world's up. A sun below the horizon at capture time gives no prior (the note says so).
-    """
-    from f2l.io.capture import capture_from_meta, capture_status, solar_position
-
-    try:
-        info = capture_from_meta(record.meta or {})
-    except ValueError as exc:
-        return None, f"sun prior: bad meta capture ({exc})"
-    source = "meta"
-    if info is None:
-        path = Path(record.source_path or "")
-        if not path.is_file():
-            return None, ""
-        info, status = capture_status(path)
-        if info is None:
-            return None, f"sun prior: none ({status})"
-        source = info.source
-    elevation, _ = solar_position(info)
-    if elevation <= 0.0:
-        return None, f"sun prior: none (sun {math.degrees(elevation):.1f} deg, below the horizon at capture)"
-    return (elevation, sigma_rad), f"sun prior: elevation {math.degrees(elevation):.1f} deg from {source}"
-
-
-def torch_threads(n: int) -> None:
-    import torch
-
-    if torch.get_num_threads() != n:
-        torch.set_num_threads(max(1, n))
-
-
-def _safe_name(face_id: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in face_id) or "face"
-
 
 def _init_worker(threads: int) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))

@@ -51,7 +51,7 @@ print(json.dumps({"faces": n, "build_s": build_s, "estimate_s": estimate_s, "ok"
 """
 
 
-def run_scale_report(sizes=(10, 200), model: str = "sh9", image_size: int = 96,
+def run_scale_report(sizes=(10, 200), *, model: str, image_size: int = 96,
                      grid: tuple[int, int] = (32, 64)) -> list[dict]:
     """One row per dataset size (see the module docstring)."""
     rows = []

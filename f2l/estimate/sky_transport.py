@@ -105,7 +105,7 @@ class SkyTransport:
         """T_sky l (B, N, 3) for sky radiance (B, Lu, 3) that includes the sun.
 
         ``sun = (vals (B, K), flat (B, K), w_sun (B, 3))``: the lobe's texel means and RGB
-        weight (``SunSky.radiance_parts``) for the exact core correction; None skips it (a
+        weight (``CompactSun.radiance_parts``) for the exact core correction; None skips it (a
         sun-less or overcast solution, or the block-only approximation).
         """
         m = self.block_means(l_sky)  # (B, nb, 3)

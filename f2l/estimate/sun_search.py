@@ -1,6 +1,6 @@
 """Global search for the sun before the non-linear fit (the multi-start centroids of sun models).
 
-For a fixed sun direction and sky shape, a Sun+Sky-like model is linear in its RGB weights:
+For a fixed sun direction and sky shape, a compact-sun model (``f2l.models.capabilities.CompactSun``) is linear in its RGB weights:
 
     s_c = psi_sky,c a_c + psi_sun,c b,   a_c = T f_c + g (rho_g/pi) E_h(f_c),
                                          b   = T[:, w] / dOmega_w + g (rho_g/pi) sin(elevation),

@@ -18,7 +18,7 @@ import OpenEXR
 
 from f2l.io.atomic import atomic_path
 
-__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata", "read_probe_image",
+__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata",
            "REC709_CHROMATICITIES", "NEGATIVE_TOLERANCE"]
 
 NEGATIVE_TOLERANCE = 1e-6
@@ -143,11 +143,3 @@ def read_exr_with_metadata(path: str | os.PathLike) -> tuple[np.ndarray, dict[st
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """Read an EXR as (H, W, 3) float32 (see ``read_exr_with_metadata``)."""
     return read_exr_with_metadata(path)[0]
-
-
-def read_probe_image(path: str | os.PathLike) -> np.ndarray:
-    """(H, W, 3) float32 linear radiance of an EXR, Radiance ``.hdr``, float TIFF, PFM or any HDR
-    format OpenImageIO reads (:func:`f2l.io.probe_io.read_hdr_image`); ValueError naming the file."""
-    from f2l.io.probe_io import read_hdr_image
-
-    return read_hdr_image(path)

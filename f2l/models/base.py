@@ -14,10 +14,18 @@ Contract
 - ``initial_points()``: starting points (S, P) for the multi-start optimiser (e.g. GMM centroids).
 - ``radiance(params)``: torch (B, P) -> (B, L, 3) radiance on the flattened grid (row-major texels),
   non-negative for sky models. For ``domain == "sky"`` only the upper rows are used.
-- optional ``linear_basis()``: an (L, K) array B when radiance(params) == B @ params.reshape(K, 3);
-  the estimator then precomputes T @ B once, which makes each evaluation O(N K).
 - optional ``prior_nll(params)``: (B,) negative log-likelihood of the parameters (the psi_l term).
 - optional ``sun_direction(params)``: (3,) unit direction of the sun, when the model has one.
+- optional ``intensity_params``: indices of parameters radiance is linear in (fit-probe fits
+  their logarithm); ``probe_starts(probe_flat)``: starts for fitting a probe (None: the
+  ``initial_points()``); ``prior_features(params)`` / ``prior_feature_names``: what
+  ``f2l build-prior`` fits its GMM on (None: the model has no GMM prior).
+
+Capabilities (``f2l.models.capabilities``) are typed mixins a model inherits to get the
+estimator's fast paths: ``LinearRadiance`` (linear in its parameters), ``SunAngles`` (the sun's
+angles are parameters: capture-time prior), ``CompactSun`` (sky + vMF sun: exact-core transport
+and the global sun search), ``LatentSky`` (a decoded latent sky: batched start search). List them
+before ``LightingModel`` in the bases. The registry checks them; ``docs/plugins.md`` has examples.
 """
 
 from __future__ import annotations
@@ -70,13 +78,25 @@ class LightingModel(ABC):
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
         """(B, P) parameters -> (B, L, 3) radiance on the flattened grid, differentiable."""
 
-    def linear_basis(self) -> np.ndarray | None:
-        return None
-
     def prior_nll(self, params: torch.Tensor) -> torch.Tensor:
         return torch.zeros(params.shape[0], dtype=params.dtype, device=params.device)
 
     def sun_direction(self, params: np.ndarray) -> np.ndarray | None:
+        return None
+
+    intensity_params: ClassVar[tuple[int, ...]] = ()
+    prior_feature_names: ClassVar[list[str] | None] = None
+
+    def prior_features(self, params: np.ndarray) -> np.ndarray | None:
+        """(n, P) -> (n, F) features a GMM prior is fitted on (``f2l build-prior``); None: no prior."""
+        return None
+
+    def probe_starts(self, probe_flat: np.ndarray) -> np.ndarray | None:
+        """(S, P) starts for fitting this model to a probe (L, 3); None: ``initial_points()``."""
+        return None
+
+    def fit_to_probe(self, probe: np.ndarray, **options):
+        """The model's own probe fit (a ``f2l.estimate.probe_fit.ProbeFit``), or None: the generic one."""
         return None
 
     # -- helpers ---------------------------------------------------------------------------------

@@ -1,8 +1,10 @@
 """Discovery of lighting models through the ``f2l.lighting_models`` entry-point group.
 
 Built-in models (``plugins/f2l_builtin_models``) register through the same group as third-party
-packages, so there is exactly one path. A plugin that fails to import is reported with its name
-and the error; the other models keep working.
+packages, so there is exactly one path. A plugin that fails to import, or that declares a
+capability (``f2l.models.capabilities``) it does not honour, is reported with its name, the
+capability and the reason; the other models keep working. Capabilities are checked statically
+when the class is loaded and numerically the first time the model is made on a grid size.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from importlib.metadata import entry_points
 
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
+from f2l.models.capabilities import check_class, check_model, declared
 
 GROUP = "f2l.lighting_models"
 
@@ -27,6 +30,7 @@ class ModelInfo:
     package: str  # distribution providing it
     cls: type | None = None
     error: str | None = None
+    capabilities: tuple[str, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -46,8 +50,13 @@ def discover() -> dict[str, ModelInfo]:
             if not (isinstance(obj, type) and issubclass(obj, LightingModel)):
                 raise TypeError(f"{ep.value} is not a subclass of f2l.models.base.LightingModel")
             missing = sorted(getattr(obj, "__abstractmethods__", ()))
+            hint = ""
+            if "radiance" in missing and declared(obj):
+                hint = " (list the capability mixins before LightingModel in the class's bases)"
             if missing:
-                raise TypeError(f"{ep.value} does not implement {', '.join(missing)}")
+                raise TypeError(f"{ep.value} does not implement {', '.join(missing)}{hint}")
+            check_class(obj)
+            info.capabilities = tuple(declared(obj))
             info.cls = obj
         except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the others
             info.error = f"{type(exc).__name__}: {exc}"
@@ -64,6 +73,18 @@ def load_model(name: str, grid: LatLongGrid) -> LightingModel:
     if not info.ok:
         raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to load: {info.error}")
     try:
-        return info.cls(grid)
+        model = info.cls(grid)
     except Exception as exc:  # e.g. a model's data file (weights, prior) is missing or broken
         raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to initialise: {exc}") from exc
+    key = (info.target, info.package, grid.height, grid.width)
+    if key not in _CHECKED:
+        try:
+            check_model(model)
+        except Exception as exc:  # noqa: BLE001 - whatever a plugin raises, say which one and why
+            raise ModelNotFoundError(f"lighting model {name!r} from {info.package} ({info.target}) was refused: "
+                                     f"{exc}") from exc
+        _CHECKED.add(key)
+    return model
+
+
+_CHECKED: set[tuple] = set()  # (target, package, H, W) whose capabilities passed check_model

@@ -101,9 +101,9 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
 
 def read_probe_file(path: Path) -> np.ndarray:
     """(H, W, 3) float32 of an EXR, Radiance ``.hdr``, PFM or float TIFF (ValueError naming the file)."""
-    from f2l.io.exr import read_probe_image
+    from f2l.io.probe_io import read_hdr_image
 
-    return read_probe_image(path)
+    return read_hdr_image(path)
 
 
 def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int, int],

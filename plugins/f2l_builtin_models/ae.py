@@ -16,8 +16,9 @@ ground bounce). Computed in float32, returned in the parameters' dtype.
 Weights: ``$F2L_AE_WEIGHTS`` or the shipped ``data/ae_sky.npz`` (rebuilt by ``make ae-weights``,
 docs/ae.md), with the latent GMM prior ``<stem>_prior.json`` beside it. A missing, truncated or
 foreign weights file raises ``f2l.ae.weights.AEWeightsError`` naming the file when the model is
-created. Face estimates go through ``f2l.ae.estimate`` (``latent_sky``: an azimuth x centroid
-search through the block transport, then all starts batched through the decoder); probe fits
+created. The model declares the ``latent-sky`` capability (``f2l.models.capabilities``), so face
+estimates go through the generic ``f2l.estimate.latent`` (an azimuth x code search through the
+block transport, then all starts batched through the decoder); probe fits
 through ``f2l.ae.probe_fit`` (``fit_to_probe``: the feed-forward code ``ae_ff`` and its
 optimisation ``ae``).
 """
@@ -33,6 +34,7 @@ import torch
 
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
+from f2l.models.capabilities import LatentLayout, LatentSky
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "ae_sky.npz"
 WEIGHTS_ENV = "F2L_AE_WEIGHTS"
@@ -73,14 +75,13 @@ def load_network(path: Path) -> dict:
     return _LOADED[key]
 
 
-class AE(LightingModel):
-    """The sky autoencoder model (module docstring)."""
+class AE(LatentSky, LightingModel):
+    """The sky autoencoder model (module docstring); capability ``latent-sky``."""
 
     name = "ae"
     version = "1"
     description = "Sky autoencoder: R(phi_sun) f_AE(z), z = (log exposure, 63 learned), 65 parameters"
     domain = "sky"
-    latent_sky = True  # f2l.estimate dispatches faces to f2l.ae.estimate
 
     def __init__(self, grid: LatLongGrid, weights: str | Path | None = None) -> None:
         super().__init__(grid)
@@ -101,6 +102,7 @@ class AE(LightingModel):
     exposure_index = 0
     shape_slice = slice(1, 64)
     azimuth_index = 64
+    latent_layout = LatentLayout(exposure=0, code=slice(1, 64), azimuth=64)
 
     @property
     def prior_feature_names(self) -> list[str]:
@@ -115,6 +117,10 @@ class AE(LightingModel):
     def prior_nll(self, params: torch.Tensor) -> torch.Tensor:
         """(B, 65) -> (B,) GMM negative log-likelihood of z_shape (0 without a prior)."""
         return self.prior_nll_shape(params[:, self.shape_slice])
+
+    def code_prior_nll(self, codes: torch.Tensor) -> torch.Tensor:
+        """``latent-sky``: the GMM NLL of the codes (z_shape)."""
+        return self.prior_nll_shape(codes)
 
     def prior_nll_shape(self, z_shape: torch.Tensor) -> torch.Tensor:
         """(B, 63) -> (B,) GMM negative log-likelihood (0 without a prior)."""
@@ -142,6 +148,11 @@ class AE(LightingModel):
                 mean = self.prior.means[j]
                 out += [mean, mean - spread * axis, mean + spread * axis]
         return np.concatenate([np.asarray(out).reshape(-1, 63), self.ladder_codes()])
+
+    @property
+    def cache_key(self) -> tuple:
+        """``latent-sky``: decoded search skies are cached per weights file (:attr:`weights_key`)."""
+        return self.weights_key
 
     @property
     def weights_key(self) -> tuple:
@@ -180,6 +191,16 @@ class AE(LightingModel):
         p = params.to(torch.float32)
         sky = decode_torch(self.decoder(p[:, self.shape_slice]), p[:, self.exposure_index])
         return self.to_grid(rotate_columns(sky, p[:, self.azimuth_index]))
+
+    def decode_sky(self, codes: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
+        """``latent-sky``: (B, 63) z_shape, (B,) azimuths -> (B, 3, rows, W) unit-exposure sky,
+        R(phi) max(D(z), 0)^3 on the grid's sky rows."""
+        from f2l.ae.encoding import decode_unit, rotate_columns
+
+        sky = decode_unit(self.decoder(codes))
+        if azimuth is not None:
+            sky = rotate_columns(sky, azimuth)
+        return self.to_grid(sky)
 
     def to_grid(self, sky: torch.Tensor) -> torch.Tensor:
         """(B, 3, 32, 128) network sky -> (B, 3, rows, W) on the grid's sky rows (area resampling;

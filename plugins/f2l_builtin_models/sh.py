@@ -3,7 +3,7 @@
 Basis: f2l's real orthonormal SH (``f2l.lighting.sh``; polar axis +Y, azimuth = grid theta, no
 Condon-Shortley phase, index k = l(l+1)+m). Parameters are the coefficients, k-major then RGB:
 params[3k + c]. The model covers the whole sphere (no separate ground), is linear in its
-parameters (so the estimator precomputes T @ Y once), and its probe is truncated at zero.
+parameters (capability ``linear``: the estimator precomputes T @ Y once), and its probe is truncated at zero.
 
 Prior (psi_l): a scale-invariant Gaussian on each band's coefficients relative to the mean DC
 term, sigma_l = SIGMA_BAND[l]. A clamped-cosine (diffuse) observation sees band 3 not at all and
@@ -17,11 +17,12 @@ import torch
 
 from f2l.lighting import sh as shlib
 from f2l.models.base import LightingModel
+from f2l.models.capabilities import LinearRadiance
 
 SIGMA_BAND = (1.0, 2.0, 2.0, 1.0, 1.0)
 
 
-class _SphericalHarmonics(LightingModel):
+class _SphericalHarmonics(LinearRadiance, LightingModel):
     order: int = 2
     domain = "sphere"
     version = "1"

@@ -24,7 +24,7 @@ sum_{upper texels} lum(f) dOmega = 2 pi, lum = Rec.709 luminance (the Y row of R
 the sky's mean luminance over the hemisphere is 1, independent of t and the sun's position,
 so w_sky is the sky's mean radiance. Preetham's absolute zenith luminance Y_z cancels out.
 
-Sun: each texel holds the lobe's mean over the texel (``sun_lobe.py``; integrated, never point
+Sun: each texel holds the lobe's mean over the texel (``f2l.lighting.sun_lobe``; integrated, never point
 sampled), so its energy is right to ~3e-4 on 64 x 128 even for kappa = 8192 and the sun moves
 smoothly between texel centres; only the lobe's window (below e^-40 of its peak outside) is
 evaluated and scattered into the sky.
@@ -54,10 +54,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from f2l.lighting.grid import LatLongGrid, direction_from_angles
+from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
+from f2l.models.capabilities import CompactSun, SunLayout
 from f2l_builtin_models import preetham, sunsky_prior
-from f2l_builtin_models.sun_lobe import sun_lobe_sparse
 
 ELEVATION_RANGE = (0.0, math.pi / 2.0)
 AZIMUTH_RANGE = (-math.pi, math.pi)
@@ -90,8 +90,12 @@ def rgb_from_xy1_matrix() -> np.ndarray:
     return np.stack([m[:, 0] - m[:, 2], m[:, 1] - m[:, 2], m[:, 2]], 1)
 
 
-class SunSky(LightingModel):
-    """Preetham sky + integrated vMF sun, 10 parameters (see the module docstring)."""
+class SunSky(CompactSun, LightingModel):
+    """Preetham sky + integrated vMF sun, 10 parameters (see the module docstring).
+
+    Capability ``compact-sun`` (``f2l.models.capabilities``): the model supplies the unit-weight
+    Preetham sky (:meth:`sky`) and the layout; radiance, the sun lobe and the estimator's fast
+    paths (exact-core transport, global sun search) come with the capability."""
 
     name = "sunsky"
     version = "1"
@@ -152,7 +156,7 @@ class SunSky(LightingModel):
         return sunsky_prior.probe_starts(self.grid, probe_flat)
 
     # -- sun search (f2l.estimate.sun_search): which parameters are the sun's and the weights ----
-    sun_layout = {"sky_rgb": (0, 1, 2), "sun_rgb": (3, 4, 5), "elevation": 6, "azimuth": 7, "kappa": 9}
+    sun_layout = SunLayout(sky_rgb=(0, 1, 2), sun_rgb=(3, 4, 5), elevation=6, azimuth=7, kappa=9)
     SEARCH_TURBIDITIES = (2.2, 4.5)  # the GMM's sunny and overcast modes (data/sunsky_prior.json)
 
     def search_shapes(self) -> np.ndarray:
@@ -181,11 +185,6 @@ class SunSky(LightingModel):
             for azimuth in (-0.75 * math.pi, -0.25 * math.pi, 0.25 * math.pi, 0.75 * math.pi):
                 starts.append([1.0, 1.0, 1.0, 10.0, 10.0, 10.0, elevation, azimuth, 3.0, 1024.0])
         return np.array(starts, dtype=np.float64)
-
-    def sun_direction(self, params: np.ndarray) -> np.ndarray:
-        """Unit omega_sun (3,) of one parameter vector (elevation clamped to [0, pi/2])."""
-        p = np.asarray(params, dtype=np.float64).reshape(-1)
-        return direction_from_angles(float(np.clip(p[6], *ELEVATION_RANGE)), float(p[7]))
 
     # -- evaluation ----------------------------------------------------------------------------
     def _consts(self, device) -> tuple[torch.Tensor, ...]:
@@ -249,21 +248,3 @@ class SunSky(LightingModel):
         rgb = (xy1 * ratio[:, None, :]).relu_()  # (B, 3, Lu); out-of-gamut negatives clipped
         integral = (luma @ rgb) @ sa  # (B,)
         return rgb, SKY_INTEGRAL / integral.clamp_min(1e-300)
-
-    def radiance(self, params: torch.Tensor) -> torch.Tensor:
-        """(B, 10) -> (B, L, 3): sky * w_sky + integrated sun lobe * w_sun on the upper rows, 0 below."""
-        return self.radiance_parts(params)[0].to(params.dtype)
-
-    def radiance_parts(self, params: torch.Tensor) -> tuple[torch.Tensor, tuple]:
-        """:meth:`radiance` in float64 and its sun: (vals (B, K), flat (B, K), w_sun (B, 3)), the
-        lobe's texel means on its window (``sun_lobe_sparse``) and RGB weight, for transports
-        that treat the sun's texels exactly (``f2l.estimate.sky_transport``)."""
-        p = self.clamp_params(params.to(torch.float64))
-        rows = self.grid.sky_rows
-        rgb, scale = self._sky(p, *self._consts(params.device))
-        vals, flat = sun_lobe_sparse(self.grid, 0.5 * math.pi - p["elevation"], p["azimuth"], p["kappa"], rows)
-        sun = vals[:, None, :] * p["w_sun"][:, :, None]  # (B, 3, K) on the lobe's window
-        upper = rgb * (p["w_sky"] * scale[:, None])[:, :, None]
-        upper = upper.scatter_add_(2, flat[:, None, :].expand(-1, 3, -1), sun)
-        out = torch.nn.functional.pad(upper.transpose(1, 2), (0, 0, 0, self.grid.size - upper.shape[2]))
-        return out, (vals, flat, p["w_sun"])

@@ -1,23 +1,28 @@
-"""Face estimation with the sky autoencoder (``latent_sky`` models; called by ``f2l.estimate.estimate``).
+"""Face estimation for decoded latent skies (capability ``latent-sky``; called by ``f2l.estimate.estimate``).
 
-Forward model (paper §3.2 with l = R(phi) f_AE(z)): shading s = rho ⊙ (T_sky l + g rho_g E_h / pi),
+A latent-sky model (``f2l.models.capabilities.LatentSky``, e.g. the paper's learned sky model)
+gives radiance l = e^{z_0} R(phi) D(z): a code z decoded to a unit-exposure sky, rotated by the
+sun's azimuth phi (a roll of columns) and scaled by the exposure. Everything model-specific comes
+through the capability: ``decode_sky``, ``search_codes``, ``code_prior_nll``, ``latent_layout``.
+
+Forward model (paper §3.2 with l = R(phi) D(z)): shading s = rho ⊙ (T_sky l + g rho_g E_h / pi),
 per channel, with the sky transport in the hybrid form of ``f2l.estimate.sky_transport``:
 T_sky l = T_blk m(l) + sum_{w in core} (T - T~)[:, w] l_w, m the solid-angle-weighted means of
 4 x 4-texel blocks and the core the ``sun_core_texels`` sky texels of most energy Y(l) dOmega
 (chosen per start and evaluation, detached): exact visibility where the sun is, block-averaged
 transport for the smooth rest; E_h = sum_sky max(0, w_y) l dOmega and g = T_gnd 1.
 
-Unknowns and parameterisation (float32 throughout; the network is float32):
-- z_shape (63), phi (1): the sky's shape and its sun's azimuth;
+Unknowns and parameterisation (float32 throughout; decoders are float32):
+- z (D), phi (1): the sky's code and its sun's azimuth;
 - psi = rho e^{z_0} (3): albedo times exposure, which is all the data term sees (the exposure-
   albedo ambiguity is then not in the data term's conditioning, as for Sun+Sky), as log psi;
 - z_0 = log max(psi) + softplus(u): the albedo rho = psi e^{-z_0} <= 1, set by the priors only;
 - rho_g = sigmoid(x_g), the ground albedo.
-Objective: mean Charbonnier(s - s*) / mean(s*) + w_l GMM-NLL(z_shape) + w_rho skin-NLL(rho).
+Objective: mean Charbonnier(s - s*) / mean(s*) + w_l code_prior_nll(z) + w_rho skin-NLL(rho).
 
 Starts (all batched through the decoder, one forward/backward per evaluation):
-1. coarse search: the codes of ``model.search_codes()`` (each GMM component's mean and +-1.5
-   sigma along its first principal axis: 24 skies, decoded once per model and cached) at every
+1. coarse search: the codes of ``model.search_codes()`` (decoded once per model's
+   ``cache_key`` and grid, and cached) at every
    azimuth in steps of half a block (5.6 deg on 128 columns: block means of two sub-shifts, then
    rolls of whole block columns), each scored by the mean absolute residual of its least-squares
    psi through T_blk (+ ground): one (N x nb) x (nb x 3 K A) product;
@@ -37,8 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from f2l.ae.encoding import decode_unit, rotate_columns
-from f2l.estimate.estimator import EstimateResult, EstimatorConfig
+from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.observation import EstimationError, FaceObservation, clipped_pixels, usable_pixels
 from f2l.estimate.skin import albedo_prior_nll, skin_albedo_mean
 from f2l.estimate.sky_transport import SkyTransport
@@ -67,7 +71,7 @@ class LatentSkyProblem:
         self.rows, self.width = grid.sky_rows, grid.width
         if self.rows % BLOCK[0] or self.width % (2 * BLOCK[1]):
             raise EstimationError(f"grid {grid.height}x{grid.width}: the sky rows and columns must split into "
-                                  f"{BLOCK[0]}x{BLOCK[1]} blocks for the autoencoder's transport")
+                                  f"{BLOCK[0]}x{BLOCK[1]} blocks for the latent-sky transport")
         self.sky = SkyTransport(transport, grid, block=BLOCK, core_texels=cfg.sun_core_texels)
         self.t_blk = self.sky.t_blk.float()  # (N, nb)
         self.nbr, self.nbc = self.sky.shape_blocks
@@ -110,11 +114,8 @@ class LatentSkyProblem:
 
     # -- forward -----------------------------------------------------------------------------------------
     def shape_sky(self, z_shape: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
-        """(B, 3, rows, W) sky of unit exposure on the grid: R(phi) max(D(z), 0)^3."""
-        sky = decode_unit(self.model.decoder(z_shape))
-        if azimuth is not None:
-            sky = rotate_columns(sky, azimuth)
-        return self.model.to_grid(sky)
+        """(B, 3, rows, W) sky of unit exposure on the grid: R(phi) D(z) (the model's ``decode_sky``)."""
+        return self.model.decode_sky(z_shape, azimuth)
 
     def block_means(self, sky: torch.Tensor) -> torch.Tensor:
         """(B, 3, rows, W) -> (B, 3, nbr, nbc) solid-angle-weighted block means."""
@@ -148,9 +149,9 @@ class LatentSkyProblem:
 
     # -- search -----------------------------------------------------------------------------------------
     def candidate_skies(self) -> tuple[np.ndarray, torch.Tensor]:
-        """(codes (K, 63), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached per
-        process, weights file and grid (they do not depend on the face)."""
-        key = (getattr(self.model, "weights_key", id(self.model)), self.grid.height, self.grid.width)
+        """(codes (K, D), their unit-exposure skies (K, 3, rows, W), sun at azimuth 0), cached per
+        process, model ``cache_key`` and grid (they do not depend on the face)."""
+        key = (self.model.cache_key, self.grid.height, self.grid.width)
         if key not in _SEARCH_CACHE:
             codes = self.model.search_codes()
             with torch.no_grad():
@@ -211,7 +212,7 @@ def pick_starts(candidates: list[dict], n: int) -> list[dict]:
 
 
 def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None = None) -> EstimateResult:
-    """Estimate a face's lighting with a latent-sky model (module docstring)."""
+    """Estimate a face's lighting with a ``latent-sky`` model (module docstring)."""
     cfg = cfg or EstimatorConfig()
     t_start = time.perf_counter()
     torch.set_num_threads(max(1, cfg.threads))
@@ -254,7 +255,7 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
         data = torch.sqrt(r * r + cfg.charbonnier_eps**2).mean((1, 2)) / prob.target_scale
         if prob.clip is not None:
             data = data + prob.clipped_term(sky, psi, rho_g) / (r.shape[1] * r.shape[2] * prob.target_scale)
-        total = data + cfg.light_prior_weight * model.prior_nll_shape(zs)
+        total = data + cfg.light_prior_weight * model.code_prior_nll(zs)
         if fixed is None:
             total = total + cfg.albedo_prior_weight * albedo_prior_nll(rho)
         return total, data
@@ -280,8 +281,11 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
         _, rho, log_exposure, rho_g = unpack(*variables)
     if not torch.isfinite(total).all():
         raise EstimationError("optimisation diverged: objective is not finite")
-    params = np.concatenate([[float(log_exposure[0])], zs[0].double().numpy(),
-                             [float(((phi[0] + math.pi) % (2 * math.pi)) - math.pi)]])
+    layout = model.latent_layout
+    params = np.zeros(model.num_params, dtype=np.float64)
+    params[layout.exposure] = float(log_exposure[0])
+    params[layout.code] = zs[0].double().numpy()
+    params[layout.azimuth] = float(((phi[0] + math.pi) % (2 * math.pi)) - math.pi)
     probe = _probe_with_ground(model, params, float(rho_g[0]))
     if not np.isfinite(probe).all():
         raise EstimationError("estimated probe is not finite")

@@ -1,0 +1,85 @@
+"""The estimator's settings and result (shared by every estimation path in ``f2l.estimate``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class EstimatorConfig:
+    charbonnier_eps: float = 1e-6
+    light_prior_weight: float = 1e-3
+    albedo_prior_weight: float = 1e-3
+    negativity_weight: float = 1.0
+    max_iter: int = 18
+    tolerance: float = 1e-4
+    max_pixels: int | None = None  # subsample usable pixels (deterministic) for speed
+    lowrank_k: int = 96
+    threads: int = 2
+    seed: int = 0
+    fixed_albedo: tuple[float, float, float] | None = None
+    ground_albedo_init: float = 0.2
+    albedo_starts: int = 2  # least-squares starts at this many albedo-GMM component means
+    # IRLS iterations for linear models, before and after the albedo split: caps; each round stops
+    # once its estimated distance to the fixed point is below `irls_tolerance` (relative, see
+    # linear.solve_psi). On the 12 demo faces 20 of 24 SH fits stop by that rule (40-154
+    # iterations), the rest at the caps; (40, 12) stopped 5e-6 to 3.5e-2 (of max|theta|) short of
+    # the fixed point, the former (18, 6) further still. §5.1 metrics move by <= 0.3% between them.
+    irls_iters: tuple[int, int] = (150, 50)
+    irls_tolerance: float = 1e-6
+    # the first `irls_warm_iters` of the first round run on every `irls_warm_stride`-th pixel:
+    # that half-size problem's optimum is a start that 4 full iterations polish (psi within
+    # 2.8e-3 of the optimum, as close as 20 full iterations, in 11/20 of the time)
+    irls_warm_iters: int = 14
+    irls_warm_stride: int = 2
+    # IRLS weights 1 / (2 max(C(r), floor * scale)): the Charbonnier term (eps = 1e-6) is |r|-like,
+    # and with a tiny floor the pixels that fit almost exactly get weights so large that float32
+    # rounding moves the solution (0.5% across CPU code paths, issue 18) and IRLS crawls. See
+    # linear.solve_psi for the choice of floor.
+    irls_floor: float = 1e-3
+    # sun models (capability compact-sun): hybrid sky transport and the global sun search
+    sun_starts: int = 3  # search candidates refined by L-BFGS: distinct suns (>= 25 deg apart) + no sun
+    sun_core_texels: int = 48  # lobe texels with exact visibility (sky_transport.py)
+    sun_kappa_init: float = 6000.0
+    sun_max_pixels: int | None = 2048  # evenly spaced usable pixels for sun models
+    sun_all_starts_iters: int = 4  # L-BFGS iterations on every start, then the best one alone
+    # after those, a solution whose sun share (_sun_share) is below this is overcast: the rest of
+    # the fit skips the exact sun core (f2l bench shows the time saved and the error cost); 0 = never
+    sun_core_min_share: float = 0.02
+    # (elevation_rad, sigma_rad) from the photo's time and place (f2l.io.capture), or None; the
+    # runner fills it per record when sun_prior_from_capture (CLI: --no-sun-prior turns it off)
+    sun_elevation_prior: tuple[float, float] | None = None
+    sun_prior_weight: float = 1e-3
+    sun_prior_from_capture: bool = True
+    sun_prior_sigma_rad: float = 0.05  # ~3 deg: the camera's tilt and the face fit's up vector
+    # leave out pixels that look like specular highlights (usable_pixels / highlight_pixels); None
+    # keeps them. At 1.0 it helped the tuning half of `make eval-real` (latent-sky mean Sun-ang
+    # 21.4 -> 14.1 deg, compact-sun 15.3 -> 13.5) but not the reporting half (compact-sun 20.7 -> 22.6): off by default
+    highlight_mad: float | None = None
+    # sun models (capabilities compact-sun and latent-sky): clipped face pixels read channel
+    # by channel, clipped channels as lower bounds (clipped_pixels). On the tuning half of `make
+    # eval-real` the compact-sun model's mean Sun-ang 15.4 -> 13.0 deg, the latent-sky model's 21.2 ->
+    # 19.8; on the reporting half the former's median 12.9 -> 11.1 (mean unchanged), the latter's mean
+    # 22.3 -> 21.4; +18-20% time in
+    # `f2l bench`. README "What each change bought".
+    clipped_bounds: bool = True
+    clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
+
+
+@dataclass
+class EstimateResult:
+    params: np.ndarray
+    param_names: list[str]
+    albedo: np.ndarray
+    ground_albedo: float | None
+    loss: float
+    iterations: int
+    converged: bool
+    runtime_s: float
+    probe: np.ndarray  # (H, W, 3) float32, ground included, >= 0
+    sun_direction: np.ndarray | None
+    timings: dict = field(default_factory=dict)
+    start_losses: list = field(default_factory=list)
+    num_pixels_used: int = 0
