@@ -70,6 +70,8 @@ def test_wheel_holds_package_data_and_entry_points(wheel):
     for name, target in (("sh9", "sh:SH9"), ("sh25", "sh:SH25"), ("sunsky", "sunsky:SunSky"), ("ae", "ae:AE")):
         assert re.search(rf"^{name} = f2l_builtin_models\.{target}$", entry_points, re.M), entry_points
     assert "[f2l.lighting_models]" in entry_points
+    # the fixtures for plugin authors' tests (f2l.testing.pytest_plugin) reach pytest from a wheel too
+    assert re.search(r"^\[pytest11\]\nf2l = f2l\.testing\.pytest_plugin$", entry_points, re.M), entry_points
 
 
 @pytest.fixture(scope="module")
