@@ -550,15 +550,41 @@ def bench_faces_cmd(
 from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
 from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
-from f2l.ae.cli import ae_corpus_cmd, train_ae_cmd  # noqa: E402
 
 app.command("ingest")(ingest_cmd)
 app.command("make-probes")(make_probes_cmd)
 app.command("bench-capture")(bench_capture_cmd)
 app.command("calibrate")(calibrate_cmd)
 app.command("build-dataset")(build_dataset_cmd)
-app.command("ae-corpus")(ae_corpus_cmd)
-app.command("train-ae")(train_ae_cmd)
+
+
+def _add_plugin_commands() -> None:
+    """Commands plugins add through the entry-point group ``f2l.commands`` (entry-point name = the
+    command, value = a typer command function), e.g. the built-in autoencoder's ``ae-corpus`` and
+    ``train-ae``. A command that fails to load still exists and says why when run."""
+    from importlib.metadata import entry_points
+
+    taken = {c.name for c in app.registered_commands}
+    for ep in entry_points(group="f2l.commands"):
+        if ep.name in taken:
+            continue
+        taken.add(ep.name)
+        try:
+            fn = ep.load()
+        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the CLI
+            fn = _broken_command(ep.name, ep.value, exc)
+        app.command(ep.name)(fn)
+
+
+def _broken_command(name: str, target: str, exc: Exception):
+    def broken() -> None:
+        _fail(f"command {name!r} ({target}) failed to load: {type(exc).__name__}: {exc}")
+
+    broken.__doc__ = f"(failed to load: {target})"
+    return broken
+
+
+_add_plugin_commands()
 
 
 @app.command("scale-report")

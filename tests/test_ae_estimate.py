@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from f2l.ae.corpus import random_ae_sky
+from f2l_builtin_models.autoencoder.corpus import random_ae_sky
 from f2l.estimate import EstimatorConfig, FaceObservation, estimate
 from f2l.estimate.prior_build import fit_probes, write_fit_report
 from f2l.estimate.probe_fit import fit_probe
@@ -51,7 +51,7 @@ def face_under_corpus_sky():
 
 
 def test_clear_sky_probe_puts_its_sun_where_asked():
-    from f2l.ae.corpus import clear_sky_probe
+    from f2l_builtin_models.autoencoder.corpus import clear_sky_probe
     from f2l.metrics.lighting import sun_direction
 
     for elevation_deg, azimuth_deg in ((5.0, -120.0), (40.0, 30.0), (85.0, 170.0)):

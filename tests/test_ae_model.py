@@ -1,4 +1,4 @@
-"""The sky autoencoder's network, HDR encoding, sun-centring and rotation (f2l.ae.model / encoding)."""
+"""The sky autoencoder's network, HDR encoding, sun-centring and rotation (f2l_builtin_models.autoencoder.model / encoding)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from f2l.ae.encoding import (SkyFormatError, centred_sky, decode_numpy, decode_torch, encode, exposure,
+from f2l_builtin_models.autoencoder.encoding import (SkyFormatError, centred_sky, decode_numpy, decode_torch, encode, exposure,
                              full_sphere, rotate_columns, sky_solid_angles)
-from f2l.ae.model import FastDecoder, SHAPE_DIM, SkyAE, SkyConv, UpConv
+from f2l_builtin_models.autoencoder.model import FastDecoder, SHAPE_DIM, SkyAE, SkyConv, UpConv
 from f2l.lighting.grid import LatLongGrid, direction_from_angles, rotate_y
 from f2l.synth.skies import clear_sky
 

@@ -1,5 +1,5 @@
 """Sky-autoencoder corpus, training (tiny: a few dozen skies, one epoch), resume, weights files and the
-plugin built from them (f2l.ae.corpus / train / weights, plugins/f2l_builtin_models/ae.py)."""
+plugin built from them (f2l_builtin_models.autoencoder.corpus / train / weights, plugins/f2l_builtin_models/ae.py)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from f2l.ae.corpus import random_ae_sky, write_ae_corpus
-from f2l.ae.model import SkyAE
-from f2l.ae.train import TrainConfig, TrainError, evaluate_loss, loss_weights, train_ae, weighted_l1
-from f2l.ae.weights import AEWeightsError, load_weights, save_weights
+from f2l_builtin_models.autoencoder.corpus import random_ae_sky, write_ae_corpus
+from f2l_builtin_models.autoencoder.model import SkyAE
+from f2l_builtin_models.autoencoder.train import TrainConfig, TrainError, evaluate_loss, loss_weights, train_ae, weighted_l1
+from f2l_builtin_models.autoencoder.weights import AEWeightsError, load_weights, save_weights
 from f2l.io.exr import read_exr
 from f2l.lighting.grid import LatLongGrid
 
@@ -79,7 +79,7 @@ def test_tiny_training_reduces_the_loss_and_writes_everything(trained, corpus):
     assert len(hist) == 1 and card["data"]["train_skies"] == N_TRAIN and card["data"]["heldout_skies"] == N_HELDOUT
     assert card["heldout"]["skies"] == N_HELDOUT and np.isfinite(card["heldout"]["l1_encoded"])
     # the trained network reconstructs the held-out skies better than its own initialisation
-    from f2l.ae.train import _cached  # the same cache train_ae built
+    from f2l_builtin_models.autoencoder.train import _cached  # the same cache train_ae built
 
     held = _cached(sorted((corpus[0] / "heldout").glob("*.exr")), weights.parent / (weights.stem + "_train") / "cache_heldout",
                    "", False)
@@ -213,7 +213,7 @@ def test_plugin_from_the_tiny_weights(trained, monkeypatch, tmp_path):
 def test_cli_commands(tmp_path):
     import typer
 
-    from f2l.ae.cli import ae_corpus_cmd, train_ae_cmd
+    from f2l_builtin_models.autoencoder.cli import ae_corpus_cmd, train_ae_cmd
 
     app = typer.Typer()
     app.command("ae-corpus")(ae_corpus_cmd)

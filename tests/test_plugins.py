@@ -307,3 +307,23 @@ def test_f2l_import_graph_has_no_cycles():
         if m not in state:
             visit(m, [m])
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_plugin_commands_join_the_cli_and_a_broken_one_says_why(tmp_path):
+    """``f2l.commands``: the built-in autoencoder's training commands come through it; a plugin's
+    command that fails to import is still listed and fails with the reason, the rest keep working."""
+    import os
+
+    (tmp_path / "cmd_plugin.py").write_text("def hello(name: str = 'sky') -> None:\n"
+                                            "    \"\"\"Say hello.\"\"\"\n    print(f'hello {name}')\n")
+    info = tmp_path / "cmd_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: cmd-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[f2l.commands]\nhello = cmd_plugin:hello\nbroken = no_such_mod_q:cmd\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    help_text = subprocess.run(f2l_cmd("--help"), env=env, capture_output=True, text=True, timeout=120).stdout
+    assert all(c in help_text for c in ("train-ae", "ae-corpus", "hello", "broken"))
+    proc = subprocess.run(f2l_cmd("hello", "--name", "sun"), env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "hello sun" in proc.stdout, proc.stderr
+    proc = subprocess.run(f2l_cmd("broken"), env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "command 'broken' (no_such_mod_q:cmd) failed to load" in proc.stderr

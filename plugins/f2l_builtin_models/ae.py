@@ -8,18 +8,18 @@ Parameters, in order (65):
                          at this grid azimuth (0 = -Z, the camera's view; +pi/2 = +X); 2 pi-periodic
 
 Radiance: f_AE(z) = e^{z_0} max(D(z_shape), 0)^3, D the trained decoder (float32, on the
-32 x 128 sky hemisphere, ``f2l.ae``), R(phi) a circular column shift, linear between whole
-columns (``f2l.ae.encoding.rotate_columns``), then area-resampled to the grid's sky rows when the
+32 x 128 sky hemisphere, ``f2l_builtin_models.autoencoder``), R(phi) a circular column shift, linear between whole
+columns (``f2l_builtin_models.autoencoder.encoding.rotate_columns``), then area-resampled to the grid's sky rows when the
 grid is not 64 x 128; the rows below the horizon are 0 (domain "sky": the estimator adds the
 ground bounce). Computed in float32, returned in the parameters' dtype.
 
 Weights: ``$F2L_AE_WEIGHTS`` or the shipped ``data/ae_sky.npz`` (rebuilt by ``make ae-weights``,
 docs/ae.md), with the latent GMM prior ``<stem>_prior.json`` beside it. A missing, truncated or
-foreign weights file raises ``f2l.ae.weights.AEWeightsError`` naming the file when the model is
+foreign weights file raises ``f2l_builtin_models.autoencoder.weights.AEWeightsError`` naming the file when the model is
 created. The model declares the ``latent-sky`` capability (``f2l.models.capabilities``), so face
 estimates go through the generic ``f2l.estimate.latent`` (an azimuth x code search through the
 block transport, then all starts batched through the decoder); probe fits
-through ``f2l.ae.probe_fit`` (``fit_to_probe``: the feed-forward code ``ae_ff`` and its
+through ``f2l_builtin_models.autoencoder.probe_fit`` (``fit_to_probe``: the feed-forward code ``ae_ff`` and its
 optimisation ``ae``).
 """
 
@@ -53,9 +53,9 @@ def weights_path() -> Path:
 
 def load_network(path: Path) -> dict:
     """{"ae", "decoder", "meta", "prior"} for ``path``, cached per (path, size, mtime)."""
-    from f2l.ae.model import FastDecoder
-    from f2l.ae.prior import prior_path
-    from f2l.ae.weights import AEWeightsError, load_weights
+    from f2l_builtin_models.autoencoder.model import FastDecoder
+    from f2l_builtin_models.autoencoder.prior import prior_path
+    from f2l_builtin_models.autoencoder.weights import AEWeightsError, load_weights
     from f2l.estimate.model_prior import load_prior
 
     path = Path(path)
@@ -85,7 +85,7 @@ class AE(LatentSky, LightingModel):
 
     def __init__(self, grid: LatLongGrid, weights: str | Path | None = None) -> None:
         super().__init__(grid)
-        from f2l.ae.encoding import grid_resampler
+        from f2l_builtin_models.autoencoder.encoding import grid_resampler
 
         self.weights_file = Path(weights) if weights is not None else weights_path()
         net = load_network(self.weights_file)
@@ -106,7 +106,7 @@ class AE(LatentSky, LightingModel):
 
     @property
     def prior_feature_names(self) -> list[str]:
-        from f2l.ae.prior import FEATURE_NAMES
+        from f2l_builtin_models.autoencoder.prior import FEATURE_NAMES
 
         return FEATURE_NAMES
 
@@ -169,7 +169,7 @@ class AE(LatentSky, LightingModel):
         if self._ladder is None:
             key = self.weights_key
             if key not in _LADDER_CACHE:  # per weights file and process: models are made per grid / record
-                from f2l.ae.corpus import clear_sky_probe
+                from f2l_builtin_models.autoencoder.corpus import clear_sky_probe
 
                 grid = LatLongGrid(64, 128)  # sky rows at the network's 32 x 128
                 probes = [clear_sky_probe(grid, math.radians(e), 0.0, t) for e in LADDER_ELEVATIONS_DEG
@@ -186,7 +186,7 @@ class AE(LatentSky, LightingModel):
     # -- evaluation ----------------------------------------------------------------------------------
     def sky(self, params: torch.Tensor) -> torch.Tensor:
         """(B, 65) -> (B, 3, rows, W) float32 sky on the grid's sky rows (channel-first)."""
-        from f2l.ae.encoding import decode_torch, rotate_columns
+        from f2l_builtin_models.autoencoder.encoding import decode_torch, rotate_columns
 
         p = params.to(torch.float32)
         sky = decode_torch(self.decoder(p[:, self.shape_slice]), p[:, self.exposure_index])
@@ -195,7 +195,7 @@ class AE(LatentSky, LightingModel):
     def decode_sky(self, codes: torch.Tensor, azimuth: torch.Tensor | None) -> torch.Tensor:
         """``latent-sky``: (B, 63) z_shape, (B,) azimuths -> (B, 3, rows, W) unit-exposure sky,
         R(phi) max(D(z), 0)^3 on the grid's sky rows."""
-        from f2l.ae.encoding import decode_unit, rotate_columns
+        from f2l_builtin_models.autoencoder.encoding import decode_unit, rotate_columns
 
         sky = decode_unit(self.decoder(codes))
         if azimuth is not None:
@@ -228,7 +228,7 @@ class AE(LatentSky, LightingModel):
     def encode_probe(self, probe: np.ndarray) -> np.ndarray:
         """(65,) feed-forward parameters of a full-sphere lat-long probe (H, 2H, 3): its sun
         azimuth, exposure and the encoder's code of its sun-centred sky (AE_FF)."""
-        from f2l.ae.encoding import centred_sky, encode, full_sphere
+        from f2l_builtin_models.autoencoder.encoding import centred_sky, encode, full_sphere
 
         sky, azimuth = centred_sky(full_sphere(probe, "probe"))
         e, log_s = encode(sky)
@@ -237,7 +237,7 @@ class AE(LatentSky, LightingModel):
         return np.concatenate([[log_s], z, [azimuth]])
 
     def fit_to_probe(self, probe: np.ndarray, **options):
-        """``fit_probe`` for this model: f2l.ae.probe_fit (result ``ae``, variant ``ae_ff``)."""
-        from f2l.ae.probe_fit import fit_ae_to_probe
+        """``fit_probe`` for this model: f2l_builtin_models.autoencoder.probe_fit (result ``ae``, variant ``ae_ff``)."""
+        from f2l_builtin_models.autoencoder.probe_fit import fit_ae_to_probe
 
         return fit_ae_to_probe(self, probe, **options)

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from f2l.ae.model import SHAPE_DIM, SkyAE
+from f2l_builtin_models.autoencoder.model import SHAPE_DIM, SkyAE
 from f2l.estimate.model_prior import GmmPrior, fit_gmm
 
 FEATURE_NAMES = [f"z{i:02d}" for i in range(1, SHAPE_DIM + 1)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from f2l.ae.encoding import sky_solid_angles
+from f2l_builtin_models.autoencoder.encoding import sky_solid_angles
 
 
 def loss_weights() -> torch.Tensor:

@@ -33,7 +33,7 @@ import math
 import numpy as np
 import torch
 
-from f2l.ae.model import SKY_SHAPE
+from f2l_builtin_models.autoencoder.model import SKY_SHAPE
 from f2l.lighting.grid import LatLongGrid, rotate_y
 from f2l.lighting.resample import column_overlap_matrix, resample, row_overlap_matrix
 

@@ -3,7 +3,7 @@
 ``f2l train-ae`` streams a folder of HDR sky probes: lat-long ``.exr`` (float, any channel type
 OpenEXR reads) or Radiance ``.hdr`` (RGBE, read by OpenCV), full sphere (W = 2H) or sky
 hemisphere (W = 4H), any resolution. Each is sun-centred and area-resampled to the 32 x 128 sky
-and encoded (:mod:`f2l.ae.encoding`) one file at a time into a memory-mapped cache, so memory
+and encoded (:mod:`f2l_builtin_models.autoencoder.encoding`) one file at a time into a memory-mapped cache, so memory
 stays bounded for any corpus size (12,000 probes of the Laval HDR sky database: 600 MB on disk).
 
 Cache: ``<dir>/skies.npy`` ((n, 3, 32, 128) float32 encoded skies), ``<dir>/info.json`` (per file:
@@ -22,8 +22,8 @@ from typing import Callable
 
 import numpy as np
 
-from f2l.ae.encoding import SkyFormatError, centred_sky, encode, full_sphere
-from f2l.ae.model import SKY_SHAPE
+from f2l_builtin_models.autoencoder.encoding import SkyFormatError, centred_sky, encode, full_sphere
+from f2l_builtin_models.autoencoder.model import SKY_SHAPE
 from f2l.io.atomic import write_text_atomic
 
 SKY_EXTENSIONS = (".exr", ".hdr")

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from f2l.ae.encoding import POWER
-from f2l.ae.model import ARCHITECTURE, SKY_SHAPE, SkyAE
+from f2l_builtin_models.autoencoder.encoding import POWER
+from f2l_builtin_models.autoencoder.model import ARCHITECTURE, SKY_SHAPE, SkyAE
 from f2l.io.atomic import atomic_path
 
 FORMAT = "f2l-ae-weights/1"

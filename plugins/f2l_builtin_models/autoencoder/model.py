@@ -1,6 +1,6 @@
 """The sky autoencoder network (Calian et al. 2018, Fig. 2), float32 torch.
 
-Input and output: the HDR-encoded sky hemisphere e (B, 3, 32, 128) of :mod:`f2l.ae.encoding`
+Input and output: the HDR-encoded sky hemisphere e (B, 3, 32, 128) of :mod:`f2l_builtin_models.autoencoder.encoding`
 (rows from the zenith to the horizon, the sun's azimuth at the centre: between columns 63 and 64).
 
 Encoder (each stage: conv -> BatchNorm -> ReLU -> 2 x 2 max-pool)::

@@ -1,6 +1,6 @@
 """CLI commands of the sky autoencoder (registered by ``f2l.cli``): ``f2l ae-corpus``, ``f2l train-ae``.
 
-Thin: option parsing, progress and exit codes; the work is in ``f2l.ae.corpus`` / ``f2l.ae.train``.
+Thin: option parsing, progress and exit codes; the work is in ``f2l_builtin_models.autoencoder.corpus`` / ``f2l_builtin_models.autoencoder.train``.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def ae_corpus_cmd(
 ) -> None:
     """Write the autoencoder's sky corpus: Preetham clear skies (all sun elevations and turbidities),
     partly cloudy and overcast skies with procedural clouds (docs/ae.md)."""
-    from f2l.ae.corpus import write_ae_corpus
+    from f2l_builtin_models.autoencoder.corpus import write_ae_corpus
     from f2l.lighting.grid import LatLongGrid
 
     try:
@@ -76,8 +76,8 @@ def train_ae_cmd(
 ) -> None:
     """Train the sky autoencoder (resumable: rerun continues after the last finished epoch), then fit
     its latent GMM prior and write weights, prior, model card and loss curve."""
-    from f2l.ae.train import TrainConfig, TrainError, train_ae
-    from f2l.ae.weights import companion
+    from f2l_builtin_models.autoencoder.train import TrainConfig, TrainError, train_ae
+    from f2l_builtin_models.autoencoder.weights import companion
 
     if not skies_dir.exists():
         _fail(f"{skies_dir}: no such folder")

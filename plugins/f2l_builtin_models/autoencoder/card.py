@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from f2l.ae.encoding import decode_numpy, sky_grid
-from f2l.ae.model import ARCHITECTURE, SkyAE
-from f2l.ae.weights import companion
+from f2l_builtin_models.autoencoder.encoding import decode_numpy, sky_grid
+from f2l_builtin_models.autoencoder.model import ARCHITECTURE, SkyAE
+from f2l_builtin_models.autoencoder.weights import companion
 from f2l.io.atomic import write_text_atomic
 
 ENCODING_NOTE = ("e = (l / s)^(1/3), s = the sky's mean Rec.709 luminance (z_0 = log s); sun-centred, "
@@ -31,7 +31,7 @@ ENCODING_NOTE = ("e = (l / s)^(1/3), s = the sky's mean Rec.709 luminance (z_0 =
 @torch.no_grad()
 def heldout_report(ae, cache, index: np.ndarray, batch: int = 64) -> dict:
     """Held-out errors of the feed-forward reconstructions (module docstring)."""
-    from f2l.ae.loss import loss_weights, weighted_l1
+    from f2l_builtin_models.autoencoder.loss import loss_weights, weighted_l1
     from f2l.metrics.lighting import PROBE_METRIC_NAMES, is_overcast, probe_metrics
 
     if len(index) == 0:

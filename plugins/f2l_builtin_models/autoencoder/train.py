@@ -10,7 +10,7 @@ texels get 2 of ~4,000 equal votes: networks trained on L1 alone (4,000 skies, t
 clear skies, 300 steps) reproduced the sky and never the sun (decoded peak ~1 x the mean sky where
 the truth is ~750 x, docs/ae.md). The squared term's gradient grows with the error (16 x L1's at
 a missing sun) and hardly touches the sky's small residuals (0.4 x L1's at an error of 0.05)
-on encoded (cube-root), sun-centred skies (:mod:`f2l.ae.encoding`, :mod:`f2l.ae.data`). Adam, batch 32, the
+on encoded (cube-root), sun-centred skies (:mod:`f2l_builtin_models.autoencoder.encoding`, :mod:`f2l_builtin_models.autoencoder.data`). Adam, batch 32, the
 learning rate on a cosine from ``lr`` to ``lr * lr_final`` over all steps. Seeded: the weights'
 initialisation from ``seed``, epoch k's shuffle and noise from (seed, k), so a resumed run
 equals an uninterrupted one. A checkpoint (model, optimiser, history) is written atomically
@@ -18,8 +18,8 @@ after every epoch to the work folder (default ``<stem>_train/`` beside the weigh
 the encoded-sky caches); a rerun with the same settings and data continues after the last
 finished epoch (other settings: an error naming the checkpoint, or ``restart``).
 
-After the last epoch: the weights (``<stem>.npz``, :mod:`f2l.ae.weights`), the latent GMM prior
-(:mod:`f2l.ae.prior`), the held-out evaluation and the model card (:mod:`f2l.ae.card`).
+After the last epoch: the weights (``<stem>.npz``, :mod:`f2l_builtin_models.autoencoder.weights`), the latent GMM prior
+(:mod:`f2l_builtin_models.autoencoder.prior`), the held-out evaluation and the model card (:mod:`f2l_builtin_models.autoencoder.card`).
 """
 
 from __future__ import annotations
@@ -35,12 +35,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from f2l.ae import card as card_mod
-from f2l.ae.data import SkyCache, build_cache, holdout_mask, list_sky_files
-from f2l.ae.loss import loss_weights, weighted_l1, weighted_l2  # noqa: F401  (re-exported)
-from f2l.ae.model import SkyAE
-from f2l.ae.prior import encode_skies, fit_latent_prior, prior_path
-from f2l.ae.weights import companion, save_weights
+from f2l_builtin_models.autoencoder import card as card_mod
+from f2l_builtin_models.autoencoder.data import SkyCache, build_cache, holdout_mask, list_sky_files
+from f2l_builtin_models.autoencoder.loss import loss_weights, weighted_l1, weighted_l2  # noqa: F401  (re-exported)
+from f2l_builtin_models.autoencoder.model import SkyAE
+from f2l_builtin_models.autoencoder.prior import encode_skies, fit_latent_prior, prior_path
+from f2l_builtin_models.autoencoder.weights import companion, save_weights
 from f2l.io.atomic import atomic_path
 
 

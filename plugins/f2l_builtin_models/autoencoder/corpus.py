@@ -14,9 +14,9 @@ Each sky draws, in this order, from its own child of ``numpy.random.SeedSequence
 - sun: the vMF lobe integrated per texel (``f2l.synth.skies.sun_lobe_energy``) times its RGB
   irradiance at normal incidence (``sun_rgb_irradiance``: extra-terrestrial white, Rayleigh and
   aerosol extinction over the Kasten-Young air mass: warmer and dimmer near the horizon);
-- partly cloudy: cover U[0.1, 0.9] of procedural clouds (:mod:`f2l.ae.clouds`) over that sky,
+- partly cloudy: cover U[0.1, 0.9] of procedural clouds (:mod:`f2l_builtin_models.autoencoder.clouds`) over that sky,
   occluding the sun partly or fully where they cross it;
-- overcast: :func:`f2l.ae.clouds.overcast_radiance` (no direct sun) at the brightness of the
+- overcast: :func:`f2l_builtin_models.autoencoder.clouds.overcast_radiance` (no direct sun) at the brightness of the
   clear sky's horizontal irradiance plus a random share (U[0.2, 0.6]) of the sun's;
 - ground: Lambertian, albedo U[0.1, 0.35], lit by the sky (rows below the horizon).
 
@@ -35,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-from f2l.ae import clouds
+from f2l_builtin_models.autoencoder import clouds
 from f2l.io.atomic import write_text_atomic
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 
@@ -146,6 +146,7 @@ def random_ae_sky(grid: LatLongGrid, rng: np.random.Generator) -> tuple[np.ndarr
 
 
 def recipe(n_train: int, n_heldout: int, seed: int, grid: LatLongGrid) -> dict:
+    # "f2l.ae.corpus": the recipe's stable id (the module's name when the shipped weights were trained)
     return {"generator": "f2l.ae.corpus", "n_train": int(n_train), "n_heldout": int(n_heldout), "seed": int(seed),
             "grid": [grid.height, grid.width], "kinds": dict(KIND_PROBABILITIES),
             "sun_elevation_deg": list(ELEVATION_RANGE_DEG), "turbidity": list(TURBIDITY_RANGE),
