@@ -133,9 +133,11 @@ def run_bench(
         cells = [name, str(len(ok)), f"{mean['precompute_s']:.3f}", fit, f"{mean['total_s']:.3f}",
                  f"{60.0 / mean['total_s']:.0f}"] + [f"{mean[m]:.4g}" for m in METRIC_NAMES]
         lines.append("| " + " | ".join(cells) + " |")
-    if "sunsky" in names and sun_skip_faces > 0:
-        lines.append("")
-        lines.extend(_sun_core_skip_table(sun_skip_faces, grid, threads, seed, image_size))
+    installed = discover()
+    for name in names:  # every compact-sun model: what skipping the exact sun core saves when overcast
+        if sun_skip_faces > 0 and name in installed and "compact-sun" in installed[name].capabilities:
+            lines.append("")
+            lines.extend(_sun_core_skip_table(name, sun_skip_faces, grid, threads, seed, image_size))
     lines.append("")
     lines.append(f"peak memory (RSS): {_peak_rss_mb():.0f} MiB")
     markdown = "\n".join(lines)
@@ -147,15 +149,16 @@ def run_bench(
     return {"markdown": markdown, "table_md": str(table_md), "plot_png": str(plot_png), "summary": summary, "transport": transport_rows}
 
 
-def _sun_core_skip_table(n: int, grid: LatLongGrid, threads: int, seed: int, image_size: int) -> list[str]:
-    """Sun+Sky on ``n`` overcast faces with and without the exact sun core: what skipping it saves."""
+def _sun_core_skip_table(name: str, n: int, grid: LatLongGrid, threads: int, seed: int, image_size: int) -> list[str]:
+    """A compact-sun model on ``n`` overcast faces with and without the exact sun core: what
+    skipping it saves."""
     from f2l.estimate import EstimatorConfig, FaceObservation, estimate
     from f2l.metrics import evaluate_pair
     from f2l.metrics.lighting import sun_energy_fraction
     from f2l.models.registry import load_model
     from f2l.synth.render import make_synthetic_set
 
-    model = load_model("sunsky", grid)
+    model = load_model(name, grid)
     rows = {"skipped when overcast (default)": [], "always exact": []}
     for face in make_synthetic_set(n, grid, seed + 1000, image_size=image_size, threads=threads, overcast_fraction=1.0):
         obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid)
@@ -164,7 +167,7 @@ def _sun_core_skip_table(n: int, grid: LatLongGrid, threads: int, seed: int, ima
             m = evaluate_pair(res.probe, face.gt_probe, grid, overcast=True)
             rows[label].append((res.timings["fit_s"], res.timings["sun_core"], m["Full-dω MAE (l)"],
                                 sun_energy_fraction(res.probe, grid) - sun_energy_fraction(face.gt_probe, grid)))
-    out = [f"Sun+Sky on {n} overcast face(s): the exact sun core (sky_transport.py) is left out once the "
+    out = [f"{name} on {n} overcast face(s): the exact sun core (sky_transport.py) is left out once the "
            "solution has no sun (share < 0.02 after the all-starts phase)",
            "", "| sun core | fit (s) | faces with core | Full-dω MAE (l) | sun share − truth |", "|---|---|---|---|---|"]
     for label, r in rows.items():

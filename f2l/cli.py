@@ -307,7 +307,7 @@ def bench(
     grid: str = typer.Option("64x128", help="Lighting grid HxW."),
     threads: int = typer.Option(2, help="Threads."),
     seed: int = typer.Option(1, help="Seed of the synthetic set."),
-    sun_skip_faces: int = typer.Option(2, help="Overcast faces on which sunsky runs with and without its exact sun core (0: none)."),
+    sun_skip_faces: int = typer.Option(2, help="Overcast faces on which each compact-sun model (sunsky, plugins) runs with and without its exact sun core (0: none)."),
 ) -> None:
     """Error versus run time of the installed models on synthetic faces (table + PNG plot)."""
     from f2l.bench import run_bench

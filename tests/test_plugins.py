@@ -73,7 +73,7 @@ def test_plugin_own_tests_pass_with_f2l_fixtures(installed_plugins, tmp_path):
 def test_bench_reports_a_plugin_next_to_the_builtins(installed_plugins, tmp_path):
     out = tmp_path / "bench"
     proc = subprocess.run(f2l_cmd("bench", "--faces", "2", "-m", "sunsky", "-m", "gradient_sun", "--grid", "32x64",
-                                  "--image-size", "96", "--threads", "1", "--sun-skip-faces", "0", "--out", str(out)),
+                                  "--image-size", "96", "--threads", "1", "--sun-skip-faces", "1", "--out", str(out)),
                           env=_env(installed_plugins), capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     bench = json.loads((out / "bench.json").read_text())
@@ -83,6 +83,8 @@ def test_bench_reports_a_plugin_next_to_the_builtins(installed_plugins, tmp_path
         assert all(np.isfinite(r["Sun-ang (°)"]) and r["total_s"] > 0 for r in rows)
         assert all("search_s" in r for r in rows)  # both took the compact-sun path (the sun search)
     assert "| gradient_sun | 2 |" in proc.stdout
+    # the overcast sun-core table runs for every compact-sun model, the plugin's too
+    assert "sunsky on 1 overcast face(s)" in proc.stdout and "gradient_sun on 1 overcast face(s)" in proc.stdout
 
 
 # -- refused at registration ---------------------------------------------------------------------------
