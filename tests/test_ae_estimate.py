@@ -154,3 +154,30 @@ def test_clipped_pixels_reach_the_latent_sky_fit(model, face_under_corpus_sky):
     dark = torch.zeros(1, 3, prob.rows, prob.width)
     cost = float(prob.clipped_term(dark, torch.ones(1, 3), torch.zeros(1)))
     np.testing.assert_allclose(cost, float(prob.clip["target"].sum()), rtol=1e-3)  # all short by their value
+
+
+def test_cached_search_codes_and_skies_do_not_depend_on_the_thread_count():
+    """The ladder codes and decoded search skies are cached once per process; float32 kernels round
+    differently with 1 or 2 threads, so they are computed single-threaded whatever came before."""
+    import f2l.estimate.latent as latent
+    import f2l_builtin_models.ae as ae_module
+
+    before = torch.get_num_threads()
+    grid = LatLongGrid(64, 128)
+    n = 512
+    obs = FaceObservation(np.tile([[0.0, 0.0, 1.0]], (n, 1)), np.full((n, 3), 0.2), np.ones(n, bool),
+                          np.zeros((n, grid.size // 8), np.uint8), grid)
+    out = []
+    try:
+        for threads in (2, 1):
+            ae_module._LADDER_CACHE.clear()
+            latent._SEARCH_CACHE.clear()
+            torch.set_num_threads(threads)
+            model = AE(grid)
+            codes, skies = latent.LatentSkyProblem(obs, model, EstimatorConfig(threads=threads)).candidate_skies()
+            out.append((model.ladder_codes().copy(), codes.copy(), skies.clone()))
+    finally:
+        torch.set_num_threads(before)
+    assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+    assert torch.equal(out[0][2], out[1][2])
+    assert torch.get_num_threads() == before

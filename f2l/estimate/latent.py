@@ -45,6 +45,7 @@ import torch.nn.functional as F
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.observation import EstimationError, FaceObservation, clipped_pixels, usable_pixels
 from f2l.estimate.skin import albedo_prior_nll, skin_albedo_mean
+from f2l.models.capabilities import single_thread
 from f2l.estimate.sky_transport import SkyTransport
 from f2l.transport import Transport
 
@@ -153,8 +154,8 @@ class LatentSkyProblem:
         process, model ``cache_key`` and grid (they do not depend on the face)."""
         key = (self.model.cache_key, self.grid.height, self.grid.width)
         if key not in _SEARCH_CACHE:
-            codes = self.model.search_codes()
-            with torch.no_grad():
+            with torch.no_grad(), single_thread():  # cached once: the same whatever the thread count
+                codes = self.model.search_codes()
                 _SEARCH_CACHE[key] = (codes, self.shape_sky(torch.as_tensor(codes, dtype=torch.float32), None))
         return _SEARCH_CACHE[key]
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -204,6 +205,19 @@ class LatentSky(ABC):
     def cache_key(self) -> tuple:
         """What the decoded search skies may be cached by, per process (e.g. the weights file)."""
         return (type(self).__module__, type(self).__qualname__, id(self))
+
+
+@contextmanager
+def single_thread():
+    """torch with one intra-op thread inside the block (restored after): for values a model caches
+    once per process (decoded search skies, encoded codes), which must not depend on the thread
+    count whoever ran before left behind (float32 kernels round differently per thread count)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 CAPABILITIES: tuple[type, ...] = (LinearRadiance, CompactSun, SunAngles, LatentSky)

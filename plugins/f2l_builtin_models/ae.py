@@ -34,7 +34,7 @@ import torch
 
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
-from f2l.models.capabilities import LatentLayout, LatentSky
+from f2l.models.capabilities import LatentLayout, LatentSky, single_thread
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "ae_sky.npz"
 WEIGHTS_ENV = "F2L_AE_WEIGHTS"
@@ -174,7 +174,10 @@ class AE(LatentSky, LightingModel):
                 grid = LatLongGrid(64, 128)  # sky rows at the network's 32 x 128
                 probes = [clear_sky_probe(grid, math.radians(e), 0.0, t) for e in LADDER_ELEVATIONS_DEG
                           for t in LADDER_TURBIDITIES]
-                _LADDER_CACHE[key] = np.stack([self.encode_probe(p)[1:64] for p in probes])
+                # one intra-op thread: float32 convolutions round differently with 1 or 2 threads,
+                # and the codes must not depend on whoever set torch's thread count before
+                with single_thread():
+                    _LADDER_CACHE[key] = np.stack([self.encode_probe(p)[1:64] for p in probes])
             self._ladder = _LADDER_CACHE[key]
         return self._ladder
 
