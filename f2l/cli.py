@@ -464,6 +464,7 @@ def fit_faces_cmd(
     gt_probes: Optional[Path] = typer.Option(None, help="Folder of ground-truth probes <photo stem>.exr to attach to the records."),
     threads: int = typer.Option(2, help="Embree threads for the transport."),
     transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
+    body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
@@ -484,7 +485,7 @@ def fit_faces_cmd(
         raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
                                  param_hint="--transport-pixels")
     options = FitOptions(resolution=resolution, grid=_grid(grid), depth_source=depth, threads=threads,
-                         transport_pixels=transport_pixels)
+                         transport_pixels=transport_pixels, body_proxy=body_proxy)
     try:
         summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
                             gt_probes=gt_probes, progress=not json_out)

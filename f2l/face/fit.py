@@ -53,6 +53,7 @@ class FitOptions:
     max_outside_fraction: float = 0.02
     min_mask_pixels: int = 200
     max_faces: int = 8
+    body_proxy: bool = False  # a neck-and-shoulders occluder posed with the head (f2l.face.body)
 
     def to_meta(self) -> dict:
         return {"resolution": self.resolution, "margin": self.margin,
@@ -62,7 +63,7 @@ class FitOptions:
                 "lattice_levels": self.lattice_levels,
                 "transport_pixels": self.transport_pixels, "min_face_px": self.min_face_px,
                 "max_yaw_deg": self.max_yaw_deg,
-                "max_outside_fraction": self.max_outside_fraction}
+                "max_outside_fraction": self.max_outside_fraction, "body_proxy": self.body_proxy}
 
 
 @dataclass
@@ -236,7 +237,14 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     bits = np.zeros((len(mask), packed_width(options.grid)), np.uint8)
     bits[~traced] = np.packbits(front_mask(normals[~traced], options.grid), axis=1,
                                 bitorder="little")
-    bits[traced] = compute_visibility(v, f, points[traced], normals[traced], options.grid,
+    occluder_v, occluder_f, offset = v, f, None
+    if options.body_proxy:  # the ray offset stays the face mesh's (1e-4 of its diagonal)
+        from f2l.face.body import with_body_proxy
+
+        occluder_v, occluder_f = with_body_proxy(v, f, head.vertices, canon, head.rotation)
+        offset = 1e-4 * float(np.linalg.norm(v.max(0) - v.min(0)))
+    bits[traced] = compute_visibility(occluder_v, occluder_f, points[traced], normals[traced], options.grid,
+                                      offset=offset,
                                       method=options.visibility_method,
                                       threads=options.threads, pixel_rc=pixel_rc[traced],
                                       lattice_levels=options.lattice_levels)
