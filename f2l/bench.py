@@ -56,7 +56,8 @@ def run_bench(
 ) -> dict:
     from f2l.estimate import EstimatorConfig, EstimationError, FaceObservation, estimate
     from f2l.metrics import METRIC_NAMES, evaluate_pair
-    from f2l.models.registry import discover, load_model
+    from f2l.models.capabilities import declared
+    from f2l.models.registry import ModelNotFoundError, discover, load_model
     from f2l.synth.render import make_synthetic_set
     from f2l.transport import compute_visibility, visibility_stats
 
@@ -82,17 +83,26 @@ def run_bench(
         gt_sun = None if overcast or sky.get("sun_direction") is None else np.asarray(sky["sun_direction"])
         obs = FaceObservation(face.normals, face.observed_rgb, face.mask, bits, grid)
         for name in names:
-            model = load_model(name, grid)
+            try:  # a plugin that is refused (capabilities) or fails to load is a row, not a crash
+                model = load_model(name, grid)
+            except ModelNotFoundError as exc:
+                model_rows[name].append({"error": str(exc)})
+                continue
             if name not in warmed:  # one untimed run: imports and caches are not per-face costs
                 warmed.add(name)
                 try:
                     estimate(obs, model, EstimatorConfig(threads=threads))
-                except EstimationError:
+                except Exception:  # noqa: BLE001 - reported by the timed run below
                     pass
             try:
                 res = estimate(obs, model, EstimatorConfig(threads=threads))
             except EstimationError as exc:
                 model_rows[name].append({"error": str(exc)})
+                continue
+            except Exception as exc:  # noqa: BLE001 - a plugin's own error: name the model and its class
+                caps = ", ".join(declared(model)) or "none"
+                model_rows[name].append({"error": f"{name} ({type(model).__module__}:{type(model).__qualname__}, "
+                                                  f"capabilities: {caps}): {type(exc).__name__}: {exc}"})
                 continue
             metrics = evaluate_pair(res.probe, face.gt_probe, grid, overcast=overcast, est_sun_dir=res.sun_direction, gt_sun_dir=gt_sun)
             model_rows[name].append({**res.timings, **metrics, "iterations": res.iterations})
@@ -135,7 +145,7 @@ def run_bench(
         lines.append("| " + " | ".join(cells) + " |")
     installed = discover()
     for name in names:  # every compact-sun model: what skipping the exact sun core saves when overcast
-        if sun_skip_faces > 0 and name in installed and "compact-sun" in installed[name].capabilities:
+        if sun_skip_faces > 0 and name in summary and "compact-sun" in installed[name].capabilities:
             lines.append("")
             lines.extend(_sun_core_skip_table(name, sun_skip_faces, grid, threads, seed, image_size))
     lines.append("")

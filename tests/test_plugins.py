@@ -329,3 +329,29 @@ def test_plugin_commands_join_the_cli_and_a_broken_one_says_why(tmp_path):
     assert proc.returncode == 0 and "hello sun" in proc.stdout, proc.stderr
     proc = subprocess.run(f2l_cmd("broken"), env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "command 'broken' (no_such_mod_q:cmd) failed to load" in proc.stderr
+
+
+def test_bench_keeps_going_past_a_refused_or_failing_plugin(bad_site, tmp_path):
+    """A refused plugin and one whose sky raises mid-estimate become 'failed' rows naming the
+    model and the capability; the built-in model in the same run is benched as usual."""
+    (bad_site / "late_fail.py").write_text(
+        "import torch\nfrom bad_plugins import _Sun\n"
+        "class LateFail(_Sun):\n    name = 'late_fail'\n    calls = 0\n"
+        "    def sky(self, params):\n        LateFail.calls += 1\n"
+        "        if LateFail.calls > 3:\n            raise RuntimeError('sky exploded')\n"
+        "        return super().sky(params)\n")
+    make_dist(bad_site, "late-fail", {"late_fail": "late_fail:LateFail"})
+    from f2l.bench import run_bench
+
+    try:
+        result = run_bench(faces=1, models=["weights_in_sky", "late_fail", "sh9"], out_dir=tmp_path,
+                           image_size=48, grid=LatLongGrid(16, 32), threads=1, exact_visibility=False,
+                           sun_skip_faces=1)
+    finally:
+        sys.modules.pop("late_fail", None)
+    md = result["markdown"]
+    assert "| weights_in_sky | 0 | failed: lighting model 'weights_in_sky' from bad-plugins" in md
+    assert "capability 'compact-sun'" in md
+    assert ("| late_fail | 0 | failed: late_fail (late_fail:LateFail, capabilities: compact-sun, sun-angles): "
+            "RuntimeError: sky exploded") in md
+    assert "| sh9 | 1 |" in md and set(result["summary"]) == {"sh9"}

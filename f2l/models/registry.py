@@ -20,7 +20,10 @@ GROUP = "f2l.lighting_models"
 
 
 class ModelNotFoundError(KeyError):
-    pass
+    """A model that is not installed, failed to load, or was refused (the message says which)."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
 
 
 @dataclass
