@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-ablations eval-real-geometry hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -114,6 +114,12 @@ eval-real: $(STAMP)
 	$(BIN)/f2l estimate $(EVAL_REAL)/true_geometry $(MODELS) --out $(EVAL_REAL)/est_true_geometry --json
 	$(BIN)/f2l eval-real $(EVAL_REAL)/pbr --est $(EVAL_REAL)/est --est "true geometry=$(EVAL_REAL)/est_true_geometry" \
 		--out $(EVAL_REAL)
+
+# The face fit's share split into normals and occluders (README "The face fit's share"): sunsky
+# and ae on the same pixels with normals and visibility from the fitted mesh, the true body or
+# neither; table in build/eval_real/geometry_share.md. Needs `make eval-real` first (~6 min).
+eval-real-geometry: $(STAMP)
+	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
 
 # Ablations (README "Where the error comes from"): the first EVAL_ABL_N cases of eval-real
 # re-rendered with one thing taken away each (same people, poses, cameras and skies), then the same

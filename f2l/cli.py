@@ -221,6 +221,25 @@ def eval_real_cmd(
     typer.echo(json.dumps(summary))
 
 
+@app.command("eval-real-geometry")
+def eval_real_geometry_cmd(
+    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (pbr/, fitted/, true_geometry/)."),
+    model: list[str] = typer.Option(["sunsky"], "--model", "-m", help="Lighting models (repeatable)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where geometry_share.md goes (default: EVAL_DIR)."),
+    threads: int = typer.Option(2, help="Threads."),
+) -> None:
+    """The face fit's share of the error split into normals and occluders (f2l.render.geometry_share)."""
+    from f2l.render.geometry_share import geometry_share, write_share
+
+    for sub in ("pbr", "fitted", "true_geometry"):
+        if not (eval_dir / sub).is_dir():
+            _fail(f"{eval_dir / sub}: missing (run `make eval-real` first)")
+    rows = geometry_share(eval_dir, list(model), threads=threads)
+    if not rows:
+        _fail(f"{eval_dir}: no fitted face with a true-geometry twin")
+    typer.echo(write_share(rows, out or eval_dir).read_text())
+
+
 @app.command("eval-real-ablations")
 def eval_real_ablations_cmd(
     eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (eval_real_rows.csv, ablations/*/)."),

@@ -227,3 +227,19 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert {r["split"] for r in rows} == {"tune", "report"}
     oracle = [float(r["MAE (s)"]) for r in rows if r["method"] == "SH25 oracle"]
     assert all(0.0 <= v < 0.5 for v in oracle)
+    # the geometry share on the same folder layout as make eval-real: six variants per face; the
+    # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored
+    eval_dir = tmp_path / "eval"
+    eval_dir.mkdir()
+    for name, src in (("pbr", pbr), ("fitted", fitted), ("true_geometry", twins)):
+        (eval_dir / name).symlink_to(src)
+    share = run("eval-real-geometry", eval_dir, "-m", "sh9", "--threads", "1")
+    from f2l.render.geometry_share import VARIANTS
+
+    assert all(f"| sh9 | {v} |" in share for v in VARIANTS)
+    share_rows = json.loads((eval_dir / "geometry_share_rows.json").read_text())
+    assert len(share_rows) == 2 * len(VARIANTS)
+    twin_rows = {r["case"]: float(r["MAE (s)"]) for r in rows if r["method"] == "sh9 (true geometry)"}
+    for r in share_rows:
+        if r["variant"] == "true":
+            assert abs(r["MAE (s)"] - twin_rows[r["case"]]) < 1e-3 * max(1.0, twin_rows[r["case"]])
