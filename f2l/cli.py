@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from f2l import __version__
+from f2l.cli_support import fail as _fail, parse_grid as _grid  # shared with the stages' cli.py
 
 app = typer.Typer(
     name="f2l",
@@ -42,21 +43,6 @@ def _root(
         root = logging.getLogger("f2l")
         root.addHandler(handler)
         root.setLevel(logging.DEBUG)
-
-
-def _grid(grid: str):
-    from f2l.lighting.grid import LatLongGrid
-
-    try:
-        h, w = (int(v) for v in grid.lower().split("x"))
-        return LatLongGrid(h, w)
-    except Exception as exc:  # noqa: BLE001
-        raise typer.BadParameter(f"--grid must look like 64x128: {exc}") from exc
-
-
-def _fail(message: str, code: int = 2) -> None:
-    typer.echo(f"f2l: error: {message}", err=True)
-    raise typer.Exit(code=code)
 
 
 @app.command()
@@ -142,118 +128,6 @@ def synth(
         sun_elevation_range_deg=elevation_range, capture_meta=capture, features=features,
     )
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
-
-
-@app.command("render-faces")
-def render_faces_cmd(
-    out: Path = typer.Option(..., "--out", help="Output folder (photos/, png/, probes/, truth/, meta/)."),
-    n: int = typer.Option(8, "--n", help="Number of cases."),
-    seed: int = typer.Option(0, help="Random seed: case i of a seed is the same person, pose, camera and sky in every variant."),
-    start: int = typer.Option(0, help="First case index (render a set in parts)."),
-    image_px: int = typer.Option(384, help="Photo size in pixels (square)."),
-    spp: int = typer.Option(64, help="Path-tracing samples per pixel."),
-    max_depth: int = typer.Option(6, help="Path length: 6 includes interreflection; 2 is direct light only."),
-    specular: bool = typer.Option(True, "--specular/--no-specular", help="Skin with a specular lobe (principled BSDF) or Lambertian."),
-    head: str = typer.Option("anny", help="anny (random Anny adults) or canonical (MediaPipe's canonical face, closed: an ablation)."),
-    clipping: bool = typer.Option(True, "--clipping/--no-clipping", help="Expose so the brightest few % of the face clip, or keep the face below 0.9."),
-    sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
-) -> None:
-    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies."""
-    from f2l.render import RenderExtraMissing
-    from f2l.render.dataset import RenderOptions, render_faces
-    from f2l.render.heads import require_anny
-    from f2l.render.scene import mitsuba
-
-    try:
-        mitsuba()
-        require_anny()
-    except RenderExtraMissing as exc:
-        _fail(str(exc))
-    try:
-        options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
-                                clipping=clipping, sunsky_fraction=sunsky_fraction)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
-    typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if summary["cases"] and len(summary["errors"]) == summary["cases"]:
-        raise typer.Exit(code=1)
-
-
-@app.command("twin-geometry")
-def twin_geometry_cmd(
-    fitted: Path = typer.Argument(..., help="Shards written by `f2l fit-faces` from `f2l render-faces` photos."),
-    render: Path = typer.Option(..., "--render", help="The `f2l render-faces` folder the photos came from."),
-    out: Path = typer.Option(..., "--out", help="Output shard directory for the true-geometry twins."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
-) -> None:
-    """Swap fitted face geometry for the renderer's true mesh (same pixels and observations)."""
-    from f2l.render.evaluate import write_true_geometry_twins
-
-    summary = write_true_geometry_twins(fitted, render, out)
-    typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if not summary["twins"]:
-        _fail("no fitted record matched a rendered case (photo stem = case id)")
-
-
-@app.command("eval-real")
-def eval_real_cmd(
-    render: Path = typer.Argument(..., help="The `f2l render-faces` folder (meta/, probes/)."),
-    est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
-    out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
-) -> None:
-    """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
-    from f2l.render.evaluate import evaluate_real, write_report
-
-    runs = {}
-    for item in est:
-        label, _, path = item.rpartition("=") if "=" in item else ("", "", item)
-        runs[label or "fitted"] = Path(path)
-    for label, path in runs.items():
-        if not (path / "estimates.parquet").is_file():
-            _fail(f"{path}: no estimates.parquet (run `f2l estimate` first)")
-    rows = evaluate_real(render, runs)
-    if not rows:
-        _fail(f"{render}: no rendered case found (meta/*.json)")
-    summary = write_report(rows, out)
-    typer.echo((out / "eval_real.md").read_text())
-    typer.echo(json.dumps(summary))
-
-
-@app.command("eval-real-geometry")
-def eval_real_geometry_cmd(
-    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (pbr/, fitted/, true_geometry/)."),
-    model: list[str] = typer.Option(["sunsky"], "--model", "-m", help="Lighting models (repeatable)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Where geometry_share.md goes (default: EVAL_DIR)."),
-    threads: int = typer.Option(2, help="Threads."),
-) -> None:
-    """The face fit's share of the error split into normals and occluders (f2l.render.geometry_share)."""
-    from f2l.render.geometry_share import geometry_share, write_share
-
-    for sub in ("pbr", "fitted", "true_geometry"):
-        if not (eval_dir / sub).is_dir():
-            _fail(f"{eval_dir / sub}: missing (run `make eval-real` first)")
-    rows = geometry_share(eval_dir, list(model), threads=threads)
-    if not rows:
-        _fail(f"{eval_dir}: no fitted face with a true-geometry twin")
-    typer.echo(write_share(rows, out or eval_dir).read_text())
-
-
-@app.command("eval-real-ablations")
-def eval_real_ablations_cmd(
-    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (eval_real_rows.csv, ablations/*/)."),
-    n: int = typer.Option(32, "--n", help="Compare the first N cases (those the ablations re-rendered)."),
-) -> None:
-    """How much of each model's error each ablation (no specular, direct light only, canonical head, no clipping) removes."""
-    from f2l.io.atomic import write_text_atomic
-    from f2l.render.evaluate import ablation_table
-
-    if not (eval_dir / "eval_real_rows.csv").is_file():
-        _fail(f"{eval_dir}: no eval_real_rows.csv (run `make eval-real` first)")
-    table = ablation_table(eval_dir, n)
-    write_text_atomic(eval_dir / "ablations.md", table + "\n")
-    typer.echo(table)
 
 
 @app.command()
@@ -471,111 +345,27 @@ def build_prior_cmd(
                            "components": prior.num_components, "features": prior.features}))
 
 
-@app.command("fit-faces")
-def fit_faces_cmd(
-    photos: list[Path] = typer.Argument(..., help="Photos (JPEG/PNG/TIFF or camera RAW) or folders of them."),
-    out: Path = typer.Option(..., "--out", help="Output shard directory."),
-    resolution: int = typer.Option(104, help="Working face resolution: the square crop around a face is resampled to this many px."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
-    depth: str = typer.Option("rigid", help="Face shape: rigid (MediaPipe's canonical face, posed by a perspective fit to the landmarks), canonical (landmark x, y with the posed canonical depth) or landmarks (landmark x, y, z: per person, noisier)."),
-    overlays: bool = typer.Option(True, "--overlays/--no-overlays", help="Write a debug overlay PNG per face."),
-    landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
-    gt_probes: Optional[Path] = typer.Option(None, help="Folder of ground-truth probes <photo stem>.exr to attach to the records."),
-    threads: int = typer.Option(2, help="Embree threads for the transport."),
-    transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
-    body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
-) -> None:
-    """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
-    from f2l.face.fit import FitOptions
-    from f2l.face.landmarker import LandmarkerError
-    from f2l.face.run import fit_faces
-    from f2l.synth.facemesh import FaceMeshError
-
-    from f2l.face.geometry import DEPTH_SOURCES
-
-    if depth not in DEPTH_SOURCES:
-        raise typer.BadParameter(f"must be one of {', '.join(DEPTH_SOURCES)}", param_hint="--depth")
-    if resolution < 32:
-        raise typer.BadParameter("must be at least 32", param_hint="--resolution")
-    from f2l.face.fit import TRANSPORT_PIXELS
-
-    if transport_pixels not in TRANSPORT_PIXELS:
-        raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
-                                 param_hint="--transport-pixels")
-    options = FitOptions(resolution=resolution, grid=_grid(grid), depth_source=depth, threads=threads,
-                         transport_pixels=transport_pixels, body_proxy=body_proxy)
-    try:
-        summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
-                            gt_probes=gt_probes, progress=not json_out)
-    except (LandmarkerError, FaceMeshError) as exc:
-        _fail(str(exc))
-    typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if summary["photos"] and summary["status"]["error"] == summary["photos"]:
-        raise typer.Exit(code=1)
-
-
-@app.command("compare-geometry")
-def compare_geometry_cmd(
-    fitted: list[Path] = typer.Argument(..., help="Shards written by `f2l fit-faces` from synthetic photos."),
-    truth: Path = typer.Option(..., "--truth", help="The `f2l synth` shards the photos came from."),
-    twin_out: Optional[Path] = typer.Option(
-        None, "--twin-out",
-        help="Write the true-geometry twins here (the fitted pixels and observations with the true mesh's "
-             "normals and visibility) to estimate side by side with the fitted records."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON rows only."),
-) -> None:
-    """Normal error (degrees) of fitted face geometry against the synthetic ground truth, on the mask."""
-    import numpy as np
-
-    from f2l.face.compare import compare_geometry
-
-    rows = compare_geometry(fitted, truth, twin_out=twin_out)
-    if not rows:
-        _fail("no fitted record matched a ground-truth face (photo stem = ground-truth face id)")
-    medians = [r["median_deg"] for r in rows]
-    summary = {"faces": len(rows), "median_of_medians_deg": round(float(np.median(medians)), 2),
-               "worst_median_deg": round(float(np.max(medians)), 2),
-               "twin_out": None if twin_out is None else str(twin_out)}
-    if json_out:
-        typer.echo(json.dumps({"rows": rows, "summary": summary}))
-        return
-    typer.echo("| face | compared px | normal err median ° | p90 ° | yaw true / fit ° | pitch true / fit ° |")
-    typer.echo("|---|---|---|---|---|---|")
-    for r in rows:
-        typer.echo(f"| {r['face_id']} | {r['compared_px']} | {r['median_deg']:.1f} | {r['p90_deg']:.1f} | "
-                   f"{r['yaw_true']:+.1f} / {r['yaw_fit']:+.1f} | {r['pitch_true']:+.1f} / {r['pitch_fit']:+.1f} |")
-    typer.echo(json.dumps(summary))
-
-
-@app.command("bench-faces")
-def bench_faces_cmd(
-    faces: int = typer.Option(4, help="Synthetic photos to fit (after one warm-up photo)."),
-    image_size: int = typer.Option(256, help="Synthetic photo size in pixels."),
-    resolution: int = typer.Option(104, help="Working face resolution (as `f2l fit-faces --resolution`)."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
-    photo: Optional[list[Path]] = typer.Option(None, "--photo", help="Also time these real photos (repeatable)."),
-    threads: int = typer.Option(2, help="Embree threads."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
-) -> None:
-    """Face fitting run time per stage (decode, landmarks, geometry, transport) next to its normal error."""
-    from f2l.face.bench import format_table, run_face_bench, to_json
-
-    result = run_face_bench(faces=faces, image_size=image_size, resolution=resolution, grid=_grid(grid),
-                            threads=threads, photos=photo)
-    typer.echo(to_json(result) if json_out else format_table(result))
-
-
-# stages with a CLI module of their own
+# stages with a CLI module of their own (f2l/<stage>/cli.py)
 from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
 from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
+from f2l.face.cli import bench_faces_cmd, compare_geometry_cmd, fit_faces_cmd  # noqa: E402
+from f2l.render.cli import (eval_real_ablations_cmd, eval_real_cmd, eval_real_geometry_cmd,  # noqa: E402
+                            render_faces_cmd, twin_geometry_cmd)
 
 app.command("ingest")(ingest_cmd)
 app.command("make-probes")(make_probes_cmd)
 app.command("bench-capture")(bench_capture_cmd)
 app.command("calibrate")(calibrate_cmd)
 app.command("build-dataset")(build_dataset_cmd)
+app.command("fit-faces")(fit_faces_cmd)
+app.command("compare-geometry")(compare_geometry_cmd)
+app.command("bench-faces")(bench_faces_cmd)
+app.command("render-faces")(render_faces_cmd)
+app.command("twin-geometry")(twin_geometry_cmd)
+app.command("eval-real")(eval_real_cmd)
+app.command("eval-real-geometry")(eval_real_geometry_cmd)
+app.command("eval-real-ablations")(eval_real_ablations_cmd)
 
 
 def _add_plugin_commands() -> None:

@@ -1,0 +1,104 @@
+"""CLI layer of face fitting (registered on the main app by :mod:`f2l.cli`): ``fit-faces``,
+``compare-geometry``, ``bench-faces``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from f2l.cli_support import fail, parse_grid
+
+
+def fit_faces_cmd(
+    photos: list[Path] = typer.Argument(..., help="Photos (JPEG/PNG/TIFF or camera RAW) or folders of them."),
+    out: Path = typer.Option(..., "--out", help="Output shard directory."),
+    resolution: int = typer.Option(104, help="Working face resolution: the square crop around a face is resampled to this many px."),
+    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
+    depth: str = typer.Option("rigid", help="Face shape: rigid (MediaPipe's canonical face, posed by a perspective fit to the landmarks), canonical (landmark x, y with the posed canonical depth) or landmarks (landmark x, y, z: per person, noisier)."),
+    overlays: bool = typer.Option(True, "--overlays/--no-overlays", help="Write a debug overlay PNG per face."),
+    landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
+    gt_probes: Optional[Path] = typer.Option(None, help="Folder of ground-truth probes <photo stem>.exr to attach to the records."),
+    threads: int = typer.Option(2, help="Embree threads for the transport."),
+    transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
+    body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
+    from f2l.face.fit import FitOptions
+    from f2l.face.landmarker import LandmarkerError
+    from f2l.face.run import fit_faces
+    from f2l.synth.facemesh import FaceMeshError
+
+    from f2l.face.geometry import DEPTH_SOURCES
+
+    if depth not in DEPTH_SOURCES:
+        raise typer.BadParameter(f"must be one of {', '.join(DEPTH_SOURCES)}", param_hint="--depth")
+    if resolution < 32:
+        raise typer.BadParameter("must be at least 32", param_hint="--resolution")
+    from f2l.face.fit import TRANSPORT_PIXELS
+
+    if transport_pixels not in TRANSPORT_PIXELS:
+        raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
+                                 param_hint="--transport-pixels")
+    options = FitOptions(resolution=resolution, grid=parse_grid(grid), depth_source=depth, threads=threads,
+                         transport_pixels=transport_pixels, body_proxy=body_proxy)
+    try:
+        summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
+                            gt_probes=gt_probes, progress=not json_out)
+    except (LandmarkerError, FaceMeshError) as exc:
+        fail(str(exc))
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if summary["photos"] and summary["status"]["error"] == summary["photos"]:
+        raise typer.Exit(code=1)
+
+
+def compare_geometry_cmd(
+    fitted: list[Path] = typer.Argument(..., help="Shards written by `f2l fit-faces` from synthetic photos."),
+    truth: Path = typer.Option(..., "--truth", help="The `f2l synth` shards the photos came from."),
+    twin_out: Optional[Path] = typer.Option(
+        None, "--twin-out",
+        help="Write the true-geometry twins here (the fitted pixels and observations with the true mesh's "
+             "normals and visibility) to estimate side by side with the fitted records."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON rows only."),
+) -> None:
+    """Normal error (degrees) of fitted face geometry against the synthetic ground truth, on the mask."""
+    import numpy as np
+
+    from f2l.face.compare import compare_geometry
+
+    rows = compare_geometry(fitted, truth, twin_out=twin_out)
+    if not rows:
+        fail("no fitted record matched a ground-truth face (photo stem = ground-truth face id)")
+    medians = [r["median_deg"] for r in rows]
+    summary = {"faces": len(rows), "median_of_medians_deg": round(float(np.median(medians)), 2),
+               "worst_median_deg": round(float(np.max(medians)), 2),
+               "twin_out": None if twin_out is None else str(twin_out)}
+    if json_out:
+        typer.echo(json.dumps({"rows": rows, "summary": summary}))
+        return
+    typer.echo("| face | compared px | normal err median ° | p90 ° | yaw true / fit ° | pitch true / fit ° |")
+    typer.echo("|---|---|---|---|---|---|")
+    for r in rows:
+        typer.echo(f"| {r['face_id']} | {r['compared_px']} | {r['median_deg']:.1f} | {r['p90_deg']:.1f} | "
+                   f"{r['yaw_true']:+.1f} / {r['yaw_fit']:+.1f} | {r['pitch_true']:+.1f} / {r['pitch_fit']:+.1f} |")
+    typer.echo(json.dumps(summary))
+
+
+def bench_faces_cmd(
+    faces: int = typer.Option(4, help="Synthetic photos to fit (after one warm-up photo)."),
+    image_size: int = typer.Option(256, help="Synthetic photo size in pixels."),
+    resolution: int = typer.Option(104, help="Working face resolution (as `f2l fit-faces --resolution`)."),
+    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
+    photo: Optional[list[Path]] = typer.Option(None, "--photo", help="Also time these real photos (repeatable)."),
+    threads: int = typer.Option(2, help="Embree threads."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+) -> None:
+    """Face fitting run time per stage (decode, landmarks, geometry, transport) next to its normal error."""
+    from f2l.face.bench import format_table, run_face_bench, to_json
+
+    result = run_face_bench(faces=faces, image_size=image_size, resolution=resolution, grid=parse_grid(grid),
+                            threads=threads, photos=photo)
+    typer.echo(to_json(result) if json_out else format_table(result))

@@ -1,0 +1,119 @@
+"""CLI layer of the independent evaluation renders (registered on the main app by :mod:`f2l.cli`):
+``render-faces``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``, ``eval-real-ablations``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from f2l.cli_support import fail
+
+
+def render_faces_cmd(
+    out: Path = typer.Option(..., "--out", help="Output folder (photos/, png/, probes/, truth/, meta/)."),
+    n: int = typer.Option(8, "--n", help="Number of cases."),
+    seed: int = typer.Option(0, help="Random seed: case i of a seed is the same person, pose, camera and sky in every variant."),
+    start: int = typer.Option(0, help="First case index (render a set in parts)."),
+    image_px: int = typer.Option(384, help="Photo size in pixels (square)."),
+    spp: int = typer.Option(64, help="Path-tracing samples per pixel."),
+    max_depth: int = typer.Option(6, help="Path length: 6 includes interreflection; 2 is direct light only."),
+    specular: bool = typer.Option(True, "--specular/--no-specular", help="Skin with a specular lobe (principled BSDF) or Lambertian."),
+    head: str = typer.Option("anny", help="anny (random Anny adults) or canonical (MediaPipe's canonical face, closed: an ablation)."),
+    clipping: bool = typer.Option(True, "--clipping/--no-clipping", help="Expose so the brightest few % of the face clip, or keep the face below 0.9."),
+    sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies."""
+    from f2l.render import RenderExtraMissing
+    from f2l.render.dataset import RenderOptions, render_faces
+    from f2l.render.heads import require_anny
+    from f2l.render.scene import mitsuba
+
+    try:
+        mitsuba()
+        require_anny()
+    except RenderExtraMissing as exc:
+        fail(str(exc))
+    try:
+        options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
+                                clipping=clipping, sunsky_fraction=sunsky_fraction)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if summary["cases"] and len(summary["errors"]) == summary["cases"]:
+        raise typer.Exit(code=1)
+
+
+def twin_geometry_cmd(
+    fitted: Path = typer.Argument(..., help="Shards written by `f2l fit-faces` from `f2l render-faces` photos."),
+    render: Path = typer.Option(..., "--render", help="The `f2l render-faces` folder the photos came from."),
+    out: Path = typer.Option(..., "--out", help="Output shard directory for the true-geometry twins."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Swap fitted face geometry for the renderer's true mesh (same pixels and observations)."""
+    from f2l.render.evaluate import write_true_geometry_twins
+
+    summary = write_true_geometry_twins(fitted, render, out)
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if not summary["twins"]:
+        fail("no fitted record matched a rendered case (photo stem = case id)")
+
+
+def eval_real_cmd(
+    render: Path = typer.Argument(..., help="The `f2l render-faces` folder (meta/, probes/)."),
+    est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
+    out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
+) -> None:
+    """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
+    from f2l.render.evaluate import evaluate_real, write_report
+
+    runs = {}
+    for item in est:
+        label, _, path = item.rpartition("=") if "=" in item else ("", "", item)
+        runs[label or "fitted"] = Path(path)
+    for label, path in runs.items():
+        if not (path / "estimates.parquet").is_file():
+            fail(f"{path}: no estimates.parquet (run `f2l estimate` first)")
+    rows = evaluate_real(render, runs)
+    if not rows:
+        fail(f"{render}: no rendered case found (meta/*.json)")
+    summary = write_report(rows, out)
+    typer.echo((out / "eval_real.md").read_text())
+    typer.echo(json.dumps(summary))
+
+
+def eval_real_geometry_cmd(
+    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (pbr/, fitted/, true_geometry/)."),
+    model: list[str] = typer.Option(["sunsky"], "--model", "-m", help="Lighting models (repeatable)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where geometry_share.md goes (default: EVAL_DIR)."),
+    threads: int = typer.Option(2, help="Threads."),
+) -> None:
+    """The face fit's share of the error split into normals and occluders (f2l.render.geometry_share)."""
+    from f2l.render.geometry_share import geometry_share, write_share
+
+    for sub in ("pbr", "fitted", "true_geometry"):
+        if not (eval_dir / sub).is_dir():
+            fail(f"{eval_dir / sub}: missing (run `make eval-real` first)")
+    rows = geometry_share(eval_dir, list(model), threads=threads)
+    if not rows:
+        fail(f"{eval_dir}: no fitted face with a true-geometry twin")
+    typer.echo(write_share(rows, out or eval_dir).read_text())
+
+
+def eval_real_ablations_cmd(
+    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (eval_real_rows.csv, ablations/*/)."),
+    n: int = typer.Option(32, "--n", help="Compare the first N cases (those the ablations re-rendered)."),
+) -> None:
+    """How much of each model's error each ablation (no specular, direct light only, canonical head, no clipping) removes."""
+    from f2l.io.atomic import write_text_atomic
+    from f2l.render.evaluate import ablation_table
+
+    if not (eval_dir / "eval_real_rows.csv").is_file():
+        fail(f"{eval_dir}: no eval_real_rows.csv (run `make eval-real` first)")
+    table = ablation_table(eval_dir, n)
+    write_text_atomic(eval_dir / "ablations.md", table + "\n")
+    typer.echo(table)
