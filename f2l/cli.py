@@ -353,19 +353,15 @@ from f2l.face.cli import bench_faces_cmd, compare_geometry_cmd, fit_faces_cmd  #
 from f2l.render.cli import (eval_real_ablations_cmd, eval_real_cmd, eval_real_geometry_cmd,  # noqa: E402
                             render_faces_cmd, twin_geometry_cmd)
 
-app.command("ingest")(ingest_cmd)
-app.command("make-probes")(make_probes_cmd)
-app.command("bench-capture")(bench_capture_cmd)
-app.command("calibrate")(calibrate_cmd)
-app.command("build-dataset")(build_dataset_cmd)
-app.command("fit-faces")(fit_faces_cmd)
-app.command("compare-geometry")(compare_geometry_cmd)
-app.command("bench-faces")(bench_faces_cmd)
-app.command("render-faces")(render_faces_cmd)
-app.command("twin-geometry")(twin_geometry_cmd)
-app.command("eval-real")(eval_real_cmd)
-app.command("eval-real-geometry")(eval_real_geometry_cmd)
-app.command("eval-real-ablations")(eval_real_ablations_cmd)
+STAGE_COMMANDS = {
+    "ingest": ingest_cmd, "make-probes": make_probes_cmd, "bench-capture": bench_capture_cmd,
+    "calibrate": calibrate_cmd, "build-dataset": build_dataset_cmd,
+    "fit-faces": fit_faces_cmd, "compare-geometry": compare_geometry_cmd, "bench-faces": bench_faces_cmd,
+    "render-faces": render_faces_cmd, "twin-geometry": twin_geometry_cmd, "eval-real": eval_real_cmd,
+    "eval-real-geometry": eval_real_geometry_cmd, "eval-real-ablations": eval_real_ablations_cmd,
+}
+for _name, _command in STAGE_COMMANDS.items():
+    app.command(_name)(_command)
 
 
 def _add_plugin_commands() -> None:
