@@ -100,11 +100,13 @@ eval-fit-faces: $(STAMP)
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_true_geometry
 
 # Accuracy on faces f2l did not render (README "Accuracy"): EVAL_REAL_N path-traced cases
-# (Mitsuba 3, Anny heads, real CC0 HDR maps and Hosek-Wilkie skies; ~8 s each on 2 cores), fitted
-# and estimated with defaults, every built-in model, on fitted and on the renderer's true geometry,
-# scored with the baselines; even cases tune, odd cases report (build/eval_real/eval_real.md).
+# (Mitsuba 3, Anny heads, real CC0 HDR maps and Hosek-Wilkie skies; ~10 s each on 2 cores: ~22 min
+# for 128, ~30 min in all), fitted and estimated with defaults, every built-in model, on fitted and
+# on the renderer's true geometry, scored with the baselines and the diagnostics; even cases tune,
+# odd cases report (build/eval_real/eval_real.md). 128 rather than 64: on 32 cases a part, single
+# chaotic cases moved a part's mean Sun-ang by ~2 deg, more than most changes tried.
 EVAL_REAL := build/eval_real
-EVAL_REAL_N ?= 64
+EVAL_REAL_N ?= 128
 MODELS := -m sh9 -m sh25 -m sunsky -m ae
 eval-real: $(STAMP)
 	$(BIN)/f2l render-faces --out $(EVAL_REAL)/pbr --n $(EVAL_REAL_N) --seed 0 --json

@@ -243,3 +243,34 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     for r in share_rows:
         if r["variant"] == "true":
             assert abs(r["MAE (s)"] - twin_rows[r["case"]]) < 1e-3 * max(1.0, twin_rows[r["case"]])
+
+
+def test_render_skies_writes_a_hosek_wilkie_corpus_that_build_prior_reads(tmp_path):
+    """`f2l render-skies`: Hosek-Wilkie probes with side files; the same draw for the same index
+    whatever --n is; the sun where the side file says; a warm sun and a blue sky (physics, not
+    f2l's own sun-colour model); and `f2l build-prior` fits them."""
+    from f2l.estimate.prior_build import fit_probes, list_probes
+    from f2l.io.exr import read_exr
+    from f2l.metrics.lighting import angle_deg, sun_direction
+    from f2l.models.registry import load_model
+    from f2l.render.skies import write_hosek_wilkie_corpus
+
+    grid = LatLongGrid(64, 128)
+    paths = write_hosek_wilkie_corpus(tmp_path / "a", 3, seed=5)
+    again = write_hosek_wilkie_corpus(tmp_path / "b", 1, seed=5)
+    assert [p.name for p in paths] == ["sky_0000.exr", "sky_0001.exr", "sky_0002.exr"]
+    assert np.array_equal(read_exr(paths[0]), read_exr(again[0]))
+    for path in paths:
+        probe = read_exr(path).astype(np.float64)
+        side = json.loads(path.with_suffix(".json").read_text())
+        assert probe.shape == (64, 128, 3) and np.isfinite(probe).all() and probe.min() >= 0.0
+        assert side["source"] == "hosek-wilkie" and 5.0 <= side["sun_elevation_deg"] <= 80.0
+        assert angle_deg(sun_direction(probe, grid), np.asarray(side["sun_direction"])) < 2.0
+        row, col = grid.direction_to_texel(np.asarray(side["sun_direction"]))
+        sun_rgb = probe[int(row), int(col)]
+        sky = probe[: grid.sky_rows].reshape(-1, 3)
+        sky_rgb = np.median(sky, axis=0)
+        assert sun_rgb[0] > sun_rgb[2] and sky_rgb[2] > sky_rgb[0], (sun_rgb, sky_rgb)
+    records = fit_probes(list_probes([tmp_path / "a"]), load_model("sunsky", grid))
+    assert [r.status for r in records] == ["ok"] * 3
+    assert all(r.sun_angle_deg is None or r.sun_angle_deg < 3.0 for r in records)

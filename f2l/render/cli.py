@@ -1,5 +1,5 @@
 """CLI layer of the independent evaluation renders (registered on the main app by :mod:`f2l.cli`):
-``render-faces``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``, ``eval-real-ablations``."""
+``render-faces``, ``render-skies``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``, ``eval-real-ablations``."""
 
 from __future__ import annotations
 
@@ -46,6 +46,25 @@ def render_faces_cmd(
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["cases"] and len(summary["errors"]) == summary["cases"]:
         raise typer.Exit(code=1)
+
+
+def render_skies_cmd(
+    out: Path = typer.Option(..., "--out", help="Output folder for the sky EXRs (+ JSON side files)."),
+    n: int = typer.Option(100, "--n", help="Number of skies."),
+    seed: int = typer.Option(0, help="Seed (sky i of a seed is the same whatever --n is)."),
+    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+) -> None:
+    """Write Hosek-Wilkie clear skies (Mitsuba 3) as 64x128 probes: a physically based corpus for `f2l build-prior`."""
+    from f2l.render import RenderExtraMissing
+    from f2l.render.scene import mitsuba
+    from f2l.render.skies import write_hosek_wilkie_corpus
+
+    try:
+        mitsuba()
+    except RenderExtraMissing as exc:
+        fail(str(exc))
+    paths = write_hosek_wilkie_corpus(out, n, seed=seed)
+    typer.echo(json.dumps({"written": len(paths), "out": str(out)}))
 
 
 def twin_geometry_cmd(

@@ -17,6 +17,16 @@ Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid 
 The cases are split by index: even = the tuning part (look at it freely while changing f2l),
 odd = the reporting part (the README's figures). Breakdowns (reporting part): by sky source, by
 sun elevation band, by sun behind the head.
+
+Diagnostics (not §5.1 metrics; they say where the error of each method comes from), per row:
+
+- ``colour R/G``, ``colour B/G``: the estimate's upper-hemisphere energy ratio R/G (B/G) over the
+  truth's (1 = the light's colour is right; the face alone cannot tell the light's colour from
+  the skin's, so the priors decide it);
+- ``MAE (s), colour matched``: MAE (s) after scaling each channel of the estimate so its
+  upper-hemisphere energy matches the truth's: what is left once the colour is right;
+- ``sun share``: the estimate's energy share in the 13° cap around the true sun (the metric's sun
+  region) minus the truth's (clear cases; < 0 = too little of the light there).
 """
 
 from __future__ import annotations
@@ -165,8 +175,56 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
 def _pair(evaluate_pair, probe, truth, grid, meta, est_sun):
     sky = meta["sky"]
     overcast = sky["kind"] == "overcast"
-    return evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun,
-                         gt_sun_dir=None if overcast else np.asarray(sky["sun_direction"]))
+    metrics = evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun,
+                            gt_sun_dir=None if overcast else np.asarray(sky["sun_direction"]))
+    return {**metrics, **diagnostics(probe, truth, grid, None if overcast else np.asarray(sky["sun_direction"]))}
+
+
+DIAGNOSTIC_NAMES = ("colour R/G", "colour B/G", "MAE (s), colour matched", "sun share")
+
+
+def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None) -> dict:
+    """The module docstring's diagnostics of one estimate (NaN where undefined)."""
+    from f2l.metrics import rendering_metrics
+    from f2l.metrics.lighting import cap_mask
+
+    weights = (grid.solid_angles * grid.upper_mask)[..., None]
+    est_rgb = (np.asarray(probe, np.float64) * weights).sum((0, 1))
+    true_rgb = (np.asarray(truth, np.float64) * weights).sum((0, 1))
+    out = dict.fromkeys(DIAGNOSTIC_NAMES, math.nan)
+    if not (est_rgb > 0).all() or not (true_rgb > 0).all():
+        return out
+    out["colour R/G"] = float((est_rgb[0] / est_rgb[1]) / (true_rgb[0] / true_rgb[1]))
+    out["colour B/G"] = float((est_rgb[2] / est_rgb[1]) / (true_rgb[2] / true_rgb[1]))
+    matched = np.asarray(probe, np.float64) * (true_rgb / est_rgb)[None, None, :]
+    out["MAE (s), colour matched"] = float(rendering_metrics(matched, truth, grid)["MAE (s)"])
+    if sun_direction is not None:
+        cap = (cap_mask(grid, sun_direction) & grid.upper_mask)[..., None]
+        out["sun share"] = float((np.asarray(probe, np.float64) * weights * cap).sum() / est_rgb.sum()
+                                 - (np.asarray(truth, np.float64) * weights * cap).sum() / true_rgb.sum())
+    return out
+
+
+def diagnostics_table(rows: list[dict], split: str = "report") -> str:
+    """Markdown: per method, the median colour ratios, mean MAE (s) as scored and colour matched,
+    and the mean sun share error (clear cases)."""
+    chosen = [r for r in rows if r["split"] == split]
+    by = defaultdict(list)
+    for r in chosen:
+        by[r["method"]].append(r)
+
+    def median(values):
+        v = [float(x) for x in values if not math.isnan(float(x))]
+        return float(np.median(v)) if v else math.nan
+
+    lines = ["| method | colour R/G (median) | colour B/G (median) | MAE (s) | MAE (s), colour matched | sun share − truth (mean) |",
+             "|---|---|---|---|---|---|"]
+    for method in sorted(by, key=lambda m: (m not in BASELINES, "(" in m, m)):
+        rs = by[method]
+        lines.append(f"| {method} | {_fmt(median(r['colour R/G'] for r in rs))} | {_fmt(median(r['colour B/G'] for r in rs))}"
+                     f" | {_fmt(_mean(float(r['MAE (s)']) for r in rs))} | {_fmt(_mean(float(r['MAE (s), colour matched']) for r in rs))}"
+                     f" | {_fmt(_mean(float(r['sun share']) for r in rs if r['sky_kind'] == 'clear'), 2)} |")
+    return "\n".join(lines)
 
 
 def _mean(values) -> float:
@@ -243,7 +301,9 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
     text = (f"## Reporting part ({n['report']} cases, {sunny} with a sun; odd case indices)\n\n"
             + summary_table(rows, "report")
             + f"\n\n## Tuning part ({n['tune']} cases; even case indices)\n\n" + summary_table(rows, "tune")
-            + "\n\n## Breakdowns (reporting part)\n\n" + breakdown_table(rows, "report") + "\n")
+            + "\n\n## Breakdowns (reporting part)\n\n" + breakdown_table(rows, "report")
+            + "\n\n## Diagnostics (reporting part; where the error comes from, not §5.1 metrics)\n\n"
+            + diagnostics_table(rows, "report") + "\n")
     write_text_atomic(out_dir / "eval_real.md", text)
     keys = list(rows[0]) if rows else []
     with atomic_path(out_dir / "eval_real_rows.csv") as tmp:
