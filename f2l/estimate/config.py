@@ -66,6 +66,15 @@ class EstimatorConfig:
     # `f2l bench`. README "What each change bought".
     clipped_bounds: bool = True
     clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
+    # sun models (compact-sun): the skin's specular highlight of the sun in the forward model
+    # (f2l.estimate.specular; GGX roughness fixed, k_s the best of a few levels up to
+    # sun_specular_max for the data term at every evaluation); needs the record's 3-D points. Off:
+    # on `make eval-real` (128 cases) the data pick k_s > 0 on 67% of the faces on the true mesh
+    # and 28% on the fitted one; on the true mesh the compact-sun model's mean Sun-ang 9.5 -> 9.1 deg
+    # (tuning part), MAE (s) -3%, on the fitted mesh no change. README "What each change bought".
+    sun_specular: bool = False
+    sun_specular_roughness: float = 0.5
+    sun_specular_max: float = 0.15
 
 
 @dataclass
@@ -83,3 +92,4 @@ class EstimateResult:
     timings: dict = field(default_factory=dict)
     start_losses: list = field(default_factory=list)
     num_pixels_used: int = 0
+    specular_ks: float | None = None  # the sun highlight's k_s (EstimatorConfig.sun_specular), else None

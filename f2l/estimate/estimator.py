@@ -34,6 +34,9 @@ from f2l.models.base import LightingModel
 from f2l.models.capabilities import CompactSun, LatentSky, LinearRadiance, SunAngles
 from f2l.transport import Transport
 
+SPECULAR_LEVELS = (0.0, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)  # x sun_specular_max: the k_s tried per evaluation
+
+
 class _Problem:
     """Precomputed, per-face pieces of the objective."""
 
@@ -71,6 +74,7 @@ class _Problem:
         self.linear = basis is not None
         self.hybrid = None
         self.clip_hybrid = None
+        self.spec = self.clip_spec = None
         if self.linear:
             basis = np.asarray(basis, dtype=np.float64)
             if self.sky:
@@ -91,6 +95,7 @@ class _Problem:
             self.hybrid = SkyTransport(transport, grid, core_texels=cfg.sun_core_texels)
             self.transport = transport
             self._init_clipped(obs, cfg, dtype)
+            self._init_specular(obs, cfg, dtype)
         else:
             dense = torch.as_tensor(transport.dense(np.float32))
             if self.sky:
@@ -126,16 +131,43 @@ class _Problem:
         ground_rows = grid.height - grid.sky_rows
         self.clip_g = torch.as_tensor(ct.block_sums(ground_rows, (ground_rows, 4), first_row=grid.sky_rows).sum(1),
                                       dtype=dtype)
+        self._clipped_idx = np.asarray(cidx)
         self.clip_target = torch.as_tensor(rgb[cidx], dtype=dtype)
         self.clip_bound = self.clip_target >= cfg.clipped_level
 
-    def clipped_term(self, parts, albedo, ground_albedo) -> torch.Tensor:
-        """Σ over clipped pixels and channels of the censored / ordinary Charbonnier terms, (B,)."""
+    def _init_specular(self, obs: FaceObservation, cfg: EstimatorConfig, dtype) -> None:
+        """The sun's highlight on the fitted and the clipped pixels (``EstimatorConfig.sun_specular``)."""
+        self.spec = self.clip_spec = None
+        if not cfg.sun_specular or obs.points is None:
+            return
+        from f2l.estimate.specular import SunSpecular
+
+        def pieces(pixels):
+            return SunSpecular(np.asarray(obs.normals)[pixels], np.asarray(obs.points)[pixels],
+                               np.asarray(obs.visibility_bits)[pixels], self.grid, cfg.sun_specular_roughness, dtype)
+
+        self.spec = pieces(self.idx)
+        if self.clip_hybrid is not None:
+            self.clip_spec = pieces(self._clipped_idx)
+
+    def specular_term(self, spec, params, k_s) -> torch.Tensor:
+        """(B, N, 3) k_s V D / (4 n·v) w_sun of the pixels of ``spec`` (f2l.estimate.specular)."""
+        layout = self.model.sun_layout
+        elevation = params[:, layout.elevation].clamp(0.0, 0.5 * np.pi)
+        direction = spec.sun_direction(elevation, params[:, layout.azimuth])
+        w_sun = params[:, list(layout.sun_rgb)].clamp_min(0.0)
+        return k_s[:, None, None] * spec.shading(direction)[:, :, None] * w_sun[:, None, :]
+
+    def clipped_term(self, parts, albedo, ground_albedo, spec=None) -> torch.Tensor:
+        """Σ over clipped pixels and channels of the censored / ordinary Charbonnier terms, (B,);
+        ``spec`` (B, N_clipped, 3) is the sun's highlight on those pixels (``sun_specular``)."""
         l_sky, sun, e_h = parts
         self.clip_hybrid.core_texels = self.hybrid.core_texels
         tl = self.clip_hybrid.apply(l_sky, sun)
         tl = tl + self.clip_g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
         resid = albedo[:, None, :] * tl - self.clip_target[None]
+        if spec is not None:
+            resid = resid + spec
         resid = torch.where(self.clip_bound[None], torch.clamp(resid, max=0.0), resid)
         eps = self.cfg.charbonnier_eps
         return torch.sqrt(resid * resid + eps**2).sum((1, 2))
@@ -178,11 +210,22 @@ class _Problem:
         cfg = self.cfg
         tl, rad = self.light_transport(params, ground_albedo)
         pred = albedo[:, None, :] * tl
+        k_s = None
+        if self.spec is not None:  # the highlight's k_s: the best of a few levels for the data term
+            unit = self.specular_term(self.spec, params, torch.ones(len(params), dtype=params.dtype))
+            with torch.no_grad():
+                levels = torch.as_tensor(SPECULAR_LEVELS, dtype=params.dtype) * cfg.sun_specular_max
+                r = pred[None] + levels[:, None, None, None] * unit[None] - self.target[None, None]
+                cost = torch.sqrt(r * r + cfg.charbonnier_eps**2).mean((2, 3))  # (levels, B)
+                k_s = levels[cost.argmin(0)]
+            pred = pred + k_s[:, None, None] * unit
+            self.last_ks = k_s.detach()
         resid = pred - self.target[None]
         data = torch.sqrt(resid * resid + cfg.charbonnier_eps**2).mean((1, 2)) / self.target_scale
         if self.clip_hybrid is not None:
             n = resid.shape[1] * resid.shape[2]
-            data = data + self.clipped_term(self._sky_parts, albedo, ground_albedo) / (n * self.target_scale)
+            clip_spec = None if k_s is None or self.clip_spec is None else self.specular_term(self.clip_spec, params, k_s)
+            data = data + self.clipped_term(self._sky_parts, albedo, ground_albedo, clip_spec) / (n * self.target_scale)
         total = data + cfg.light_prior_weight * self.model.prior_nll(params)
         if cfg.sun_elevation_prior is not None and isinstance(self.model, SunAngles):
             el0, sigma = cfg.sun_elevation_prior
@@ -391,6 +434,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
                  "sun_core": sun_core},
         start_losses=[float(v) for v in totals],
         num_pixels_used=int(prob.idx.size),
+        specular_ks=float(prob.last_ks[best]) if prob.spec is not None else None,
     )
 
 

@@ -36,6 +36,7 @@ class FaceObservation:
     visibility_bits: np.ndarray  # (N, ceil(L/8)) uint8
     grid: LatLongGrid
     face_id: str = ""
+    points: np.ndarray | None = None  # (N, 3) camera frame (camera at the origin), for view directions
 
 
 def highlight_pixels(rgb: np.ndarray, mad_factor: float) -> np.ndarray:

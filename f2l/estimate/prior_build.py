@@ -181,7 +181,7 @@ def write_fit_report(records: list[ProbeRecord], model, out_dir: str | Path | No
     }
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     lines = [
-        f"| model | probes | fitted | Sun-ang median (°) | mean | 90th pct | n (sun known) | time per probe (s) |",
+        "| model | probes | fitted | Sun-ang median (°) | mean | 90th pct | n (sun known) | time per probe (s) |",
         "|---|---|---|---|---|---|---|---|",
         f"| {model.name} | {len(records)} | {len(ok)} | {fmt(summary['sun_angle_deg_median'], '.3f')} | "
         f"{fmt(summary['sun_angle_deg_mean'], '.3f')} | {fmt(summary['sun_angle_deg_p90'], '.3f')} | "

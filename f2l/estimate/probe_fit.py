@@ -19,7 +19,6 @@ lets the worst start slow the others), otherwise from ``initial_points()``.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 

@@ -78,6 +78,7 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
         obs = FaceObservation(
             normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
             visibility_bits=record.visibility_bits, grid=grid, face_id=record.face_id,
+            points=getattr(record, "points", None),
         )
         run_cfg, prior_note = cfg, ""
         if cfg.sun_prior_from_capture and isinstance(model, SunAngles):  # capability sun-angles
