@@ -53,3 +53,53 @@ def test_an_empty_estimate_gives_nan_not_an_error_and_the_table_lists_each_metho
              **diagnostics(truth * [0.9, 1, 1.1], truth, GRID, SUN)} for m in ("sunsky", "ae")]
     table = diagnostics_table(rows)
     assert "| sunsky | 0.9 | 1.1 |" in table and "| ae |" in table
+
+
+def test_the_elevation_error_has_the_sign_of_the_estimates_lean():
+    truth = _sky_with_sun()
+    higher = direction_from_angles(np.radians(50.0), 0.7)
+    d = diagnostics(truth, truth, GRID, SUN, est_sun_direction=higher)
+    assert d["sun elevation error (°)"] == pytest.approx(10.0, abs=1e-9)
+    lower = direction_from_angles(np.radians(25.0), 0.7)
+    assert diagnostics(truth, truth, GRID, SUN, est_sun_direction=lower)["sun elevation error (°)"] == pytest.approx(-15.0)
+    # without an explicit sun, the probe's own (the direction Sun-ang scores): within a texel here
+    assert abs(diagnostics(truth, truth, GRID, SUN)["sun elevation error (°)"]) < 180.0 / GRID.height
+    assert np.isnan(diagnostics(truth, truth, GRID, None)["sun elevation error (°)"])
+
+
+def test_the_truth_without_its_sun_disk_differs_from_the_truth_only_in_the_disk():
+    from f2l.metrics import evaluate_pair
+    from f2l.metrics.lighting import cap_mask
+    from f2l.render.evaluate import baseline_probes, sun_disk_radius_deg, without_sun_disk
+
+    assert sun_disk_radius_deg(LatLongGrid(64, 128)) == pytest.approx(0.27 + 2.8125 / np.sqrt(2.0))
+    truth = _sky_with_sun()
+    probe = baseline_probes(truth, GRID, SUN)["truth without its sun disk"]
+    disk = cap_mask(GRID, SUN, sun_disk_radius_deg(GRID))
+    row, col = GRID.direction_to_texel(SUN)
+    assert disk[int(row), int(col)]  # the texel that holds the sun is in the disk
+    np.testing.assert_array_equal(probe[~disk], truth[~disk])
+    np.testing.assert_allclose(probe[disk], np.broadcast_to([0.5, 0.7, 1.0], probe[disk].shape))
+    m = evaluate_pair(probe, truth, GRID, overcast=False, est_sun_dir=SUN, gt_sun_dir=SUN)
+    assert m["Sun-dω MAE (l)"] > 0.1 and m["Full-dω MAE (l)"] > 0.0
+    # overcast (no true sun): the truth itself
+    np.testing.assert_array_equal(without_sun_disk(truth, GRID, None), truth)
+
+
+def test_the_elevation_bias_table_splits_sky_sources_and_bands_and_leaves_out_baselines():
+    from f2l.render.evaluate import elevation_bias_table
+
+    def row(method, source, elevation, error, angle):
+        return {"method": method, "split": "report", "sky_kind": "clear", "source": source,
+                "sun_elevation_deg": elevation, "sun elevation error (°)": error, "Sun-ang (°)": angle}
+
+    rows = [row("sunsky", "sunsky", 30.0, 2.0, 5.0), row("sunsky", "sunsky", 40.0, 4.0, 7.0),
+            row("sunsky", "park", 10.0, 13.0, 20.0), row("sunsky", "bridge", 88.0, -20.0, 30.0),
+            row("uniform sky", "sunsky", 30.0, 9.0, 40.0),
+            {**row("sunsky", "sunsky", 30.0, 50.0, 50.0), "split": "tune"}]
+    table = elevation_bias_table(rows)
+    line = next(x for x in table.splitlines() if x.startswith("| sunsky |"))
+    cells = [c.strip() for c in line.strip("|").split("|")][1:]
+    assert cells[1] == "+3.0° / 6° (2)"  # Hosek–Wilkie 15–45°: the tuning row is left out
+    assert cells[4] == "+13.0° / 20° (1)" and cells[7] == "-20.0° / 30° (1)"
+    assert cells[0] == "—" and "uniform sky" not in table

@@ -12,7 +12,11 @@ Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid 
 - ``uniform sky``: constant radiance over the upper hemisphere and a grey (albedo 0.2) ground it
   lights: what one knows with no estimate at all (every metric is scale-invariant);
 - ``SH9 oracle`` / ``SH25 oracle``: the truth projected onto real SH of order 2 / 4 (texel-mean
-  quadrature) and reconstructed, negative lobes clipped at 0 — the best those bases can do.
+  quadrature) and reconstructed, negative lobes clipped at 0 — the best those bases can do;
+- ``truth without its sun disk``: the truth with the texels that hold the sun's disk (centres within
+  :func:`sun_disk_radius_deg` of the true sun) replaced by the median of the ring around them (clear cases; overcast ones keep the truth):
+  an estimate that is exact everywhere except the sun's own disk. Its Full-dω MAE (l) is the floor
+  for every estimate whose sun misses the disk; its Sun-ang is not scored (NaN).
 
 The cases are split by index: even = the tuning part (look at it freely while changing f2l),
 odd = the reporting part (the README's figures). Breakdowns (reporting part): by sky source, by
@@ -26,7 +30,11 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
 - ``MAE (s), colour matched``: MAE (s) after scaling each channel of the estimate so its
   upper-hemisphere energy matches the truth's: what is left once the colour is right;
 - ``sun share``: the estimate's energy share in the 13° cap around the true sun (the metric's sun
-  region) minus the truth's (clear cases; < 0 = too little of the light there).
+  region) minus the truth's (clear cases; < 0 = too little of the light there);
+- ``sun elevation error (°)``: the elevation of the estimate's sun (the direction Sun-ang scores)
+  minus the true sun's (clear cases; > 0 = too high). :func:`elevation_bias_table` gives its
+  median per sun elevation band and sky source: a mean Sun-ang says how far off the sun is, this
+  says whether the estimates lean one way.
 """
 
 from __future__ import annotations
@@ -40,9 +48,12 @@ import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["baseline_probes", "evaluate_real", "write_true_geometry_twins", "case_of_source"]
+__all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "evaluate_real", "elevation_bias_table", "write_true_geometry_twins",
+           "case_of_source"]
 
-BASELINES = ("uniform sky", "SH9 oracle", "SH25 oracle")
+BASELINES = ("uniform sky", "SH9 oracle", "SH25 oracle", "truth without its sun disk")
+SUN_RADIUS_DEG = 0.27  # the sun's angular radius
+SUN_RING_DEG = 4.0  # width of the ring whose median radiance replaces the disk
 ELEVATION_BANDS_DEG = ((0.0, 15.0), (15.0, 45.0), (45.0, 90.0))
 SPLITS = {"tune": 0, "report": 1}
 
@@ -63,8 +74,9 @@ def split_of(meta: dict) -> str:
     return "report" if meta["index"] % 2 == SPLITS["report"] else "tune"
 
 
-def baseline_probes(truth: np.ndarray, grid: LatLongGrid) -> dict[str, np.ndarray]:
-    """The three baselines (module docstring) for one truth probe on ``grid``."""
+def baseline_probes(truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The baselines (module docstring) for one truth probe on ``grid``; ``sun_direction`` (unit,
+    grid frame) is the true sun of a clear case, None for an overcast one."""
     from f2l.lighting import sh
 
     uniform = np.ones(grid.shape + (3,))
@@ -73,6 +85,30 @@ def baseline_probes(truth: np.ndarray, grid: LatLongGrid) -> dict[str, np.ndarra
     for name, order in (("SH9 oracle", 2), ("SH25 oracle", 4)):
         coeffs = sh.project(truth, grid, order)
         out[name] = np.clip(sh.reconstruct(coeffs, grid), 0.0, None)
+    out["truth without its sun disk"] = without_sun_disk(truth, grid, sun_direction)
+    return out
+
+
+def sun_disk_radius_deg(grid: LatLongGrid) -> float:
+    """Radius of the cap whose texel centres include every texel the sun's disk can touch: the
+    sun's radius plus half a texel's diagonal at the horizon (2.3° on 64 × 128)."""
+    return SUN_RADIUS_DEG + 0.5 * math.sqrt(2.0) * 180.0 / grid.height
+
+
+def without_sun_disk(truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None) -> np.ndarray:
+    """``truth`` with its texels within :func:`sun_disk_radius_deg` of ``sun_direction`` set to the
+    per-channel median of the ``SUN_RING_DEG`` wide ring around them (upper hemisphere); a copy of
+    ``truth`` when ``sun_direction`` is None."""
+    from f2l.metrics.lighting import cap_mask
+
+    out = np.array(truth, dtype=np.float64, copy=True)
+    if sun_direction is None:
+        return out
+    radius = sun_disk_radius_deg(grid)
+    disk = cap_mask(grid, sun_direction, radius)
+    ring = cap_mask(grid, sun_direction, radius + SUN_RING_DEG) & ~disk & grid.upper_mask
+    if disk.any() and ring.any():
+        out[disk] = np.median(out[ring], axis=0)
     return out
 
 
@@ -152,8 +188,12 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
 
     for case, meta in cases.items():
         truth = _truth_on(render_dir, case, grid, cache)
-        for name, probe in baseline_probes(truth, grid).items():
-            rows.append(row(name, case, _pair(evaluate_pair, probe, truth, grid, meta, None), 0.0))
+        true_sun = None if meta["sky"]["kind"] == "overcast" else np.asarray(meta["sky"]["sun_direction"])
+        for name, probe in baseline_probes(truth, grid, true_sun).items():
+            metrics = _pair(evaluate_pair, probe, truth, grid, meta, None)
+            if name == "truth without its sun disk":  # its "sun" is the ring's median: not scored
+                metrics["Sun-ang (°)"] = metrics["sun elevation error (°)"] = math.nan
+            rows.append(row(name, case, metrics, 0.0))
     for label, est_dir in runs.items():
         est_dir = Path(est_dir)
         run = json.loads((est_dir / "run.json").read_text())
@@ -175,18 +215,22 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
 def _pair(evaluate_pair, probe, truth, grid, meta, est_sun):
     sky = meta["sky"]
     overcast = sky["kind"] == "overcast"
-    metrics = evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun,
-                            gt_sun_dir=None if overcast else np.asarray(sky["sun_direction"]))
-    return {**metrics, **diagnostics(probe, truth, grid, None if overcast else np.asarray(sky["sun_direction"]))}
+    true_sun = None if overcast else np.asarray(sky["sun_direction"])
+    metrics = evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun, gt_sun_dir=true_sun)
+    return {**metrics, **diagnostics(probe, truth, grid, true_sun, est_sun)}
 
 
-DIAGNOSTIC_NAMES = ("colour R/G", "colour B/G", "MAE (s), colour matched", "sun share")
+DIAGNOSTIC_NAMES = ("colour R/G", "colour B/G", "MAE (s), colour matched", "sun share", "sun elevation error (°)")
 
 
-def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None) -> dict:
-    """The module docstring's diagnostics of one estimate (NaN where undefined)."""
+def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None,
+                est_sun_direction: np.ndarray | None = None) -> dict:
+    """The module docstring's diagnostics of one estimate (NaN where undefined). ``sun_direction``:
+    the true sun (None when overcast); ``est_sun_direction``: the estimate's own sun direction when
+    it reports one, else the probe's (:func:`f2l.metrics.lighting.sun_direction`, as Sun-ang)."""
     from f2l.metrics import rendering_metrics
     from f2l.metrics.lighting import cap_mask
+    from f2l.metrics.lighting import sun_direction as probe_sun_direction
 
     weights = (grid.solid_angles * grid.upper_mask)[..., None]
     est_rgb = (np.asarray(probe, np.float64) * weights).sum((0, 1))
@@ -194,6 +238,9 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
     out = dict.fromkeys(DIAGNOSTIC_NAMES, math.nan)
     if not (est_rgb > 0).all() or not (true_rgb > 0).all():
         return out
+    if sun_direction is not None:
+        est_sun = probe_sun_direction(probe, grid) if est_sun_direction is None else np.asarray(est_sun_direction, np.float64)
+        out["sun elevation error (°)"] = _elevation_deg(est_sun) - _elevation_deg(sun_direction)
     out["colour R/G"] = float((est_rgb[0] / est_rgb[1]) / (true_rgb[0] / true_rgb[1]))
     out["colour B/G"] = float((est_rgb[2] / est_rgb[1]) / (true_rgb[2] / true_rgb[1]))
     matched = np.asarray(probe, np.float64) * (true_rgb / est_rgb)[None, None, :]
@@ -224,6 +271,35 @@ def diagnostics_table(rows: list[dict], split: str = "report") -> str:
         lines.append(f"| {method} | {_fmt(median(r['colour R/G'] for r in rs))} | {_fmt(median(r['colour B/G'] for r in rs))}"
                      f" | {_fmt(_mean(float(r['MAE (s)']) for r in rs))} | {_fmt(_mean(float(r['MAE (s), colour matched']) for r in rs))}"
                      f" | {_fmt(_mean(float(r['sun share']) for r in rs if r['sky_kind'] == 'clear'), 2)} |")
+    return "\n".join(lines)
+
+
+def _elevation_deg(direction) -> float:
+    d = np.asarray(direction, np.float64)
+    return float(np.degrees(np.arcsin(np.clip(d[1] / np.linalg.norm(d), -1.0, 1.0))))
+
+
+ELEVATION_BIAS_BANDS_DEG = ((0.0, 15.0), (15.0, 45.0), (45.0, 75.0), (75.0, 90.0))
+
+
+def elevation_bias_table(rows: list[dict], split: str = "report") -> str:
+    """Markdown: per method (baselines left out), the median ``sun elevation error (°)`` and the
+    mean Sun-ang in each sun elevation band, for the Hosek–Wilkie skies and the HDR maps apart
+    (clear cases of ``split``). Cells: "median elevation error / mean Sun-ang (cases)"."""
+    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and r["method"] not in BASELINES]
+    methods = sorted({r["method"] for r in chosen}, key=lambda m: ("(" in m, m))
+    columns = [(kind, band) for kind in ("Hosek–Wilkie", "HDR maps") for band in ELEVATION_BIAS_BANDS_DEG]
+    lines = ["| method | " + " | ".join(f"{kind}, sun {lo:.0f}–{hi:.0f}°" for kind, (lo, hi) in columns) + " |",
+             "|" + "---|" * (len(columns) + 1)]
+    for method in methods:
+        cells = []
+        for kind, (lo, hi) in columns:
+            rs = [r for r in chosen if r["method"] == method and (r["source"] == "sunsky") == (kind == "Hosek–Wilkie")
+                  and lo <= float(r["sun_elevation_deg"]) < (hi if hi < 90.0 else 90.01)]
+            err = [float(r["sun elevation error (°)"]) for r in rs if not math.isnan(float(r["sun elevation error (°)"]))]
+            cells.append(f"{np.median(err):+.1f}° / {_fmt(_mean(float(r['Sun-ang (°)']) for r in rs), 3)}° ({len(rs)})"
+                         if err else "—")
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -303,7 +379,9 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
             + f"\n\n## Tuning part ({n['tune']} cases; even case indices)\n\n" + summary_table(rows, "tune")
             + "\n\n## Breakdowns (reporting part)\n\n" + breakdown_table(rows, "report")
             + "\n\n## Diagnostics (reporting part; where the error comes from, not §5.1 metrics)\n\n"
-            + diagnostics_table(rows, "report") + "\n")
+            + diagnostics_table(rows, "report")
+            + "\n\n## Sun elevation bias (reporting part; median elevation error / mean Sun-ang (cases))\n\n"
+            + elevation_bias_table(rows, "report") + "\n")
     write_text_atomic(out_dir / "eval_real.md", text)
     keys = list(rows[0]) if rows else []
     with atomic_path(out_dir / "eval_real_rows.csv") as tmp:
