@@ -73,6 +73,9 @@ class _Problem:
         basis = model.linear_basis() if isinstance(model, LinearRadiance) else None
         self.linear = basis is not None
         self.hybrid = None
+        self.albedo_prior_weight = cfg.albedo_prior_weight
+        if isinstance(model, CompactSun) and cfg.sun_albedo_prior_weight is not None:
+            self.albedo_prior_weight = cfg.sun_albedo_prior_weight
         self.clip_hybrid = None
         self.spec = self.clip_spec = None
         if self.linear:
@@ -232,7 +235,7 @@ class _Problem:
             z = (params[:, self.model.sun_angles.elevation] - el0) / sigma
             total = total + cfg.sun_prior_weight * 0.5 * z * z
         if cfg.fixed_albedo is None:
-            total = total + cfg.albedo_prior_weight * albedo_prior_nll(albedo)
+            total = total + self.albedo_prior_weight * albedo_prior_nll(albedo)
         if cfg.negativity_weight > 0 and not self.sky:
             if self.linear:
                 rad = torch.einsum("lk,bkc->blc", self.neg_basis, params.reshape(params.shape[0], -1, 3))
