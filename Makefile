@@ -100,8 +100,8 @@ eval-fit-faces: $(STAMP)
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_true_geometry
 
 # Accuracy on faces f2l did not render (README "Accuracy"): EVAL_REAL_N path-traced cases
-# (Mitsuba 3, Anny heads, real CC0 HDR maps and Hosek-Wilkie skies; ~10 s each on 2 cores: ~22 min
-# for 128, ~30 min in all), fitted and estimated with defaults, every built-in model, on fitted and
+# (Mitsuba 3, Anny heads, real CC0 HDR maps and Hosek-Wilkie skies; ~10-13 s each on 2 cores: 22-28 min
+# for 128, 30-37 min in all), fitted and estimated with defaults, every built-in model, on fitted and
 # on the renderer's true geometry, scored with the baselines and the diagnostics; even cases tune,
 # odd cases report (build/eval_real/eval_real.md). 128 rather than 64: on 32 cases a part, single
 # chaotic cases moved a part's mean Sun-ang by ~2 deg, more than most changes tried.
