@@ -227,6 +227,13 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert {r["split"] for r in rows} == {"tune", "report"}
     oracle = [float(r["MAE (s)"]) for r in rows if r["method"] == "SH25 oracle"]
     assert all(0.0 <= v < 0.5 for v in oracle)
+    # photo residuals: each estimate and the truth through the record's own transport (the
+    # baselines have none)
+    est_rows = [r for r in rows if r["method"].startswith("sh9")]
+    for r in est_rows:
+        assert 0.0 < float(r["photo residual"]) < 1.0 and 0.0 < float(r["photo residual, truth"]) < 1.0
+    assert all(r["photo residual"] == "nan" for r in rows if r["method"] == "uniform sky")
+    assert "Does the photo prefer the truth?" in md
     # the geometry share on the same folder layout as make eval-real: six variants per face; the
     # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored
     eval_dir = tmp_path / "eval"

@@ -52,7 +52,8 @@ def _faces(specular: float, n: int = 3):
 def test_a_lambertian_face_keeps_k_s_at_zero_and_a_glossy_one_gets_a_highlight():
     """f2l's own renderer (a Blinn-Phong highlight, shininess 40, not this GGX lobe): the
     Lambertian faces keep k_s = 0 and their sun (within 1.5°: the path of the fit changes); on
-    glossy faces the highlight places the sun (measured: mean 11.2° -> 3.2° on these four)."""
+    glossy faces the highlight places the sun (measured: mean 5.1° -> 2.8° on these four with
+    the sun's elevation profile, the default; 11.2° -> 3.2° without it)."""
     model = load_model("sunsky", GRID)
     on = dataclasses.replace(EstimatorConfig(), sun_specular=True, threads=1)
     off = dataclasses.replace(on, sun_specular=False)
@@ -68,6 +69,6 @@ def test_a_lambertian_face_keeps_k_s_at_zero_and_a_glossy_one_gets_a_highlight()
     assert sum(w.specular_ks > 0.0 for w, _, _ in glossy) >= 3
     mean_on = np.mean([angle(w.sun_direction, s) for w, _, s in glossy])
     mean_off = np.mean([angle(o.sun_direction, s) for _, o, s in glossy])
-    assert mean_on < 0.5 * mean_off, (mean_on, mean_off)
+    assert mean_on < 0.65 * mean_off and mean_on < 4.0, (mean_on, mean_off)
     obs_without_points = dataclasses.replace(next(_faces(0.0, 1))[0], points=None)
     assert estimate(obs_without_points, model, on).specular_ks is None

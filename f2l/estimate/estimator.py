@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 
+import math
 import time
 from functools import lru_cache
 
@@ -411,16 +412,40 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     best = int(np.nanargmin(totals))
     converged = its < budget
 
-    best_params = params[best : best + 1]
+    profile_s, sun_direction, weights = 0.0, None, None
+    ks = prob.last_ks if prob.spec is not None else None  # the highlight's k_s of each start (sun_specular)
+    if prob.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
+        t_profile = time.perf_counter()
+        pinned = _elevation_profile(prob, unpack, tuple(v[best : best + 1] for v in variables), cfg, model)
+        if pinned is not None:  # the fit and its pinned copies: the posterior over the sun's elevation
+            params = torch.cat([params[best : best + 1], pinned[0]])
+            rho = torch.cat([rho[best : best + 1], pinned[1]])
+            rho_g = torch.cat([rho_g[best : best + 1], pinned[2]])
+            totals = np.concatenate([totals[best : best + 1], pinned[3]])
+            if ks is not None:
+                ks = torch.cat([ks[best : best + 1], prob.last_ks])
+            best = int(np.nanargmin(totals))
+            weights = _profile_weights(totals, cfg.sun_profile_temperature)
+            dirs = np.stack([model.sun_direction(p.numpy().astype(np.float64)) for p in params])
+            mean = (weights[:, None] * dirs).sum(0)
+            sun_direction = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 1e-9 else dirs[best]
+        profile_s = time.perf_counter() - t_profile
+
     with torch.no_grad():
-        rad = prob.radiance(best_params)[0].clone()
+        chosen = [best] if weights is None else list(range(len(totals)))
+        rads = prob.radiance(params[chosen]).clone()
         if prob.sky:
-            e_h = (prob.e_sky[:, None] * rad[: prob.L_sky]).sum(0)
-            rad[prob.L_sky :] = rho_g[best] / np.pi * e_h[None, :]
-    probe = np.maximum(rad.numpy(), 0.0).reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
+            e_h = (prob.e_sky[None, :, None] * rads[:, : prob.L_sky]).sum(1)
+            rads[:, prob.L_sky :] = rho_g[chosen][:, None, None] / np.pi * e_h[:, None, :]
+        rads = rads.clamp_min(0.0)
+        rad = rads[0] if weights is None else torch.einsum("b,blc->lc", torch.as_tensor(weights, dtype=rads.dtype), rads)
+    probe = rad.numpy().reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
     if not np.isfinite(probe).all():
         raise EstimationError("estimated probe is not finite")
+    best_params = params[best : best + 1]
     best_np = best_params[0].numpy().astype(np.float64)
+    if sun_direction is None:
+        sun_direction = model.sun_direction(best_np)
     runtime = time.perf_counter() - t_start
     return EstimateResult(
         params=best_np,
@@ -432,12 +457,12 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         converged=bool(converged),
         runtime_s=runtime,
         probe=probe,
-        sun_direction=model.sun_direction(best_np),
-        timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime,
-                 "sun_core": sun_core},
+        sun_direction=sun_direction,
+        timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "profile_s": profile_s,
+                 "total_s": runtime, "sun_core": sun_core},
         start_losses=[float(v) for v in totals],
         num_pixels_used=int(prob.idx.size),
-        specular_ks=float(prob.last_ks[best]) if prob.spec is not None else None,
+        specular_ks=float(ks[best]) if ks is not None else None,
     )
 
 
@@ -533,6 +558,40 @@ def _lbfgs(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, max_iter: 
     optimiser.step(closure)
     state = optimiser.state[optimiser._params[0]]
     return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))
+
+
+def _elevation_profile(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, model):
+    """The fitted start (``variables``, one row) copied with its sun's elevation pinned at each of
+    ``cfg.sun_elevation_profile_deg`` (those within 2.5 deg of the fit left out) and the rest
+    refined for ``cfg.sun_profile_iters`` L-BFGS iterations: (params, albedo, ground albedo,
+    totals (K,)) or None when no elevation is left."""
+    el_idx = model.sun_layout.elevation
+    with torch.no_grad():
+        fitted = float(unpack(*variables)[0][0, el_idx])
+    pins = [math.radians(e) for e in cfg.sun_elevation_profile_deg if abs(math.radians(e) - fitted) > math.radians(2.5)]
+    if not pins:
+        return None
+    pin = torch.as_tensor(pins, dtype=variables[0].dtype)[:, None]
+
+    def unpack_pinned(x_theta, x_gnd, x_rho):
+        params, rho, rho_g = unpack(x_theta, x_gnd, x_rho)
+        return torch.cat([params[:, :el_idx], pin, params[:, el_idx + 1 :]], 1), rho, rho_g
+
+    copies = tuple(v.expand(len(pins), *v.shape[1:]).clone() for v in variables)
+    copies, _ = _lbfgs(prob, unpack_pinned, copies, cfg, cfg.sun_profile_iters)
+    with torch.no_grad():
+        params, rho, rho_g = unpack_pinned(*copies)
+        total, _ = prob.objective(params, rho, rho_g)
+    return params, rho, rho_g, total.numpy()
+
+
+def _profile_weights(totals: np.ndarray, temperature: float) -> np.ndarray:
+    """Posterior weights exp(-temperature (L - L_min) / L_min) over objective values, normalised
+    (non-finite values weigh 0)."""
+    finite = np.isfinite(totals)
+    lo = float(np.min(totals[finite]))
+    w = np.where(finite, np.exp(-temperature * (np.where(finite, totals, lo) - lo) / max(abs(lo), 1e-12)), 0.0)
+    return w / w.sum()
 
 
 def _sun_share(model, params: np.ndarray) -> float:

@@ -35,6 +35,11 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
   minus the true sun's (clear cases; > 0 = too high). :func:`elevation_bias_table` gives its
   median per sun elevation band and sky source: a mean Sun-ang says how far off the sun is, this
   says whether the estimates lean one way.
+- ``photo residual`` / ``photo residual, truth``: how well the estimate's probe and the truth each
+  explain the face's usable pixels through that record's own transport, skin albedo free per
+  channel (:mod:`f2l.render.photo_residual`; NaN for the baselines). :func:`residual_table`
+  counts the far-off suns whose estimate fits the photo at least as well as the truth: errors
+  that the data term, as f2l reads the photo, does not correct.
 """
 
 from __future__ import annotations
@@ -48,8 +53,8 @@ import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "evaluate_real", "elevation_bias_table", "write_true_geometry_twins",
-           "case_of_source"]
+__all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "evaluate_real", "elevation_bias_table", "residual_table",
+           "write_true_geometry_twins", "case_of_source"]
 
 BASELINES = ("uniform sky", "SH9 oracle", "SH25 oracle", "truth without its sun disk")
 SUN_RADIUS_DEG = 0.27  # the sun's angular radius
@@ -163,7 +168,8 @@ def _truth_on(render_dir: Path, case: str, grid: LatLongGrid, cache: dict) -> np
     return cache[key]
 
 
-def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = LatLongGrid(64, 128)) -> list[dict]:
+def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = LatLongGrid(64, 128),
+                  photo_residuals: bool = True) -> list[dict]:
     """One row per (method, case): the seven metrics, run time, split and breakdown keys.
 
     ``runs`` maps a label (e.g. "fitted", "true geometry") to an ``f2l estimate`` output folder;
@@ -193,23 +199,60 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
             metrics = _pair(evaluate_pair, probe, truth, grid, meta, None)
             if name == "truth without its sun disk":  # its "sun" is the ring's median: not scored
                 metrics["Sun-ang (°)"] = metrics["sun elevation error (°)"] = math.nan
+            metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
             rows.append(row(name, case, metrics, 0.0))
     for label, est_dir in runs.items():
         est_dir = Path(est_dir)
         run = json.loads((est_dir / "run.json").read_text())
-        record_case = _record_cases([Path(s) for s in run["shards"]])
+        shards = [Path(s) for s in run["shards"]]
+        record_case = _record_cases(shards)
+        by_face = defaultdict(list)
         for est in pq.read_table(est_dir / "estimates.parquet").to_pylist():
-            case = record_case.get(est["face_id"])
-            if est["status"] != "ok" or case not in cases:
-                continue
-            g = LatLongGrid(est["grid_height"], est["grid_width"])
-            truth = _truth_on(render_dir, case, g, cache)
-            probe = read_exr(est_dir / est["probe_path"]).astype(np.float64)
-            sun = est.get("sun_direction")
-            metrics = _pair(evaluate_pair, probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
-            method = est["model"] if label == "fitted" else f"{est['model']} ({label})"
-            rows.append(row(method, case, metrics, float(est["runtime_s"])))
+            if est["status"] == "ok" and record_case.get(est["face_id"]) in cases:
+                by_face[est["face_id"]].append(est)
+        residuals = _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) if photo_residuals else {}
+        for face_id, ests in by_face.items():
+            case = record_case[face_id]
+            for est in ests:
+                g = LatLongGrid(est["grid_height"], est["grid_width"])
+                truth = _truth_on(render_dir, case, g, cache)
+                probe = read_exr(est_dir / est["probe_path"]).astype(np.float64)
+                sun = est.get("sun_direction")
+                metrics = _pair(evaluate_pair, probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
+                metrics.update(residuals.get((face_id, est["model"]), dict.fromkeys(RESIDUAL_NAMES, math.nan)))
+                method = est["model"] if label == "fitted" else f"{est['model']} ({label})"
+                rows.append(row(method, case, metrics, float(est["runtime_s"])))
     return rows
+
+
+RESIDUAL_NAMES = ("photo residual", "photo residual, truth")
+
+
+def _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) -> dict:
+    """{(face_id, model): {"photo residual": r(estimate), "photo residual, truth": r(truth)}}
+    through each record's own transport (:mod:`f2l.render.photo_residual`); a record that cannot
+    be read or has no usable pixels gets none (its rows keep NaN)."""
+    from f2l.estimate.observation import EstimationError
+    from f2l.io.exr import read_exr
+    from f2l.io.shards import iter_records
+    from f2l.render.photo_residual import PhotoResidual
+
+    out = {}
+    for rec in iter_records(shards):
+        ests = by_face.get(getattr(rec, "face_id", None)) if getattr(rec, "ok", False) else None
+        if not ests:
+            continue
+        try:
+            fit = PhotoResidual(rec)
+        except EstimationError:
+            continue
+        truth = _truth_on(render_dir, record_case[rec.face_id], fit.grid, cache)
+        r_truth = fit.residual(truth)
+        for est in ests:
+            probe = read_exr(Path(est_dir) / est["probe_path"]).astype(np.float64)
+            if probe.shape[:2] == fit.grid.shape:
+                out[(rec.face_id, est["model"])] = {"photo residual": fit.residual(probe), "photo residual, truth": r_truth}
+    return out
 
 
 def _pair(evaluate_pair, probe, truth, grid, meta, est_sun):
@@ -303,6 +346,32 @@ def elevation_bias_table(rows: list[dict], split: str = "report") -> str:
     return "\n".join(lines)
 
 
+FAR_OFF_DEG = 15.0
+
+
+def residual_table(rows: list[dict], split: str | None = None, far_off_deg: float = FAR_OFF_DEG) -> str:
+    """Markdown: per method with photo residuals, over clear cases of ``split`` (None: both parts),
+    the median photo residual of the estimate and of the truth, and, for the cases whose Sun-ang
+    exceeds ``far_off_deg``, how many fit the photo at least as well as the truth does (the photo,
+    read through f2l's forward model and that record's geometry, does not point at the true sun)
+    and their share of the method's summed Sun-ang."""
+    chosen = [r for r in rows if (split is None or r["split"] == split) and r["sky_kind"] == "clear"
+              and not math.isnan(float(r.get("photo residual", math.nan)))]
+    methods = sorted({r["method"] for r in chosen}, key=lambda m: ("(" in m, m))
+    lines = [f"| method | clear cases | photo residual, estimate (median) | photo residual, truth (median) | Sun-ang > {far_off_deg:g}° | of those, fit the photo as well as the truth | their share of the summed Sun-ang |",
+             "|---|---|---|---|---|---|---|"]
+    for method in methods:
+        rs = [r for r in chosen if r["method"] == method]
+        far = [r for r in rs if float(r["Sun-ang (°)"]) > far_off_deg]
+        preferred = [r for r in far if float(r["photo residual"]) <= float(r["photo residual, truth"])]
+        total = sum(float(r["Sun-ang (°)"]) for r in rs if not math.isnan(float(r["Sun-ang (°)"])))
+        share = sum(float(r["Sun-ang (°)"]) for r in preferred) / total if total > 0 else math.nan
+        lines.append(f"| {method} | {len(rs)} | {_fmt(float(np.median([float(r['photo residual']) for r in rs])))}"
+                     f" | {_fmt(float(np.median([float(r['photo residual, truth']) for r in rs])))} | {len(far)}"
+                     f" | {len(preferred)} | {_fmt(100.0 * share, 2)}% |")
+    return "\n".join(lines)
+
+
 def _mean(values) -> float:
     v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
     return float(np.mean(v)) if v else math.nan
@@ -381,7 +450,9 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
             + "\n\n## Diagnostics (reporting part; where the error comes from, not §5.1 metrics)\n\n"
             + diagnostics_table(rows, "report")
             + "\n\n## Sun elevation bias (reporting part; median elevation error / mean Sun-ang (cases))\n\n"
-            + elevation_bias_table(rows, "report") + "\n")
+            + elevation_bias_table(rows, "report")
+            + "\n\n## Does the photo prefer the truth? (both parts; f2l's Lambertian forward model through each record)\n\n"
+            + residual_table(rows) + "\n")
     write_text_atomic(out_dir / "eval_real.md", text)
     keys = list(rows[0]) if rows else []
     with atomic_path(out_dir / "eval_real_rows.csv") as tmp:
