@@ -6,22 +6,22 @@ import numpy as np
 import pytest
 
 from f2l.estimate import EstimatorConfig, estimate
-from f2l.estimate.estimator import _profile_weights
+from f2l.estimate.sun_profile import posterior_weights
 from f2l.metrics import evaluate_pair
 from f2l.testing import check_model, synthetic_faces
 
 GRID = (32, 64)
 
 
-def test_profile_weights_favour_the_lowest_objective_and_ignore_non_finite_values():
+def test_posterior_weights_favour_the_lowest_objective_and_ignore_non_finite_values():
     totals = np.array([0.100, 0.101, 0.110, np.nan, np.inf])
-    w = _profile_weights(totals, 100.0)
+    w = posterior_weights(totals, 100.0)
     assert w.sum() == pytest.approx(1.0)
     assert w[0] > w[1] > w[2] > 0 and w[3] == 0 and w[4] == 0
     # relative excess: 1% above the minimum weighs exp(-1) of it at temperature 100
     assert w[1] / w[0] == pytest.approx(math.exp(-1.0), rel=1e-9)
-    assert np.allclose(_profile_weights(totals[:3], 0.0), 1 / 3)  # no temperature: a plain mean
-    assert _profile_weights(totals[:3], 1e6)[0] == pytest.approx(1.0)  # very cold: the minimum alone
+    assert np.allclose(posterior_weights(totals[:3], 0.0), 1 / 3)  # no temperature: a plain mean
+    assert posterior_weights(totals[:3], 1e6)[0] == pytest.approx(1.0)  # very cold: the minimum alone
 
 
 def sun_error_deg(result, case) -> float:
@@ -75,14 +75,14 @@ def test_a_flat_profile_hedges_toward_the_mean_of_the_pinned_suns(faces):
 def test_the_highlight_k_s_reported_is_the_chosen_copys_when_a_pinned_copy_wins(monkeypatch):
     """With the sun's highlight on (sun_specular), the reported k_s follows the start that wins,
     also when that is the last pinned copy (it used to index past the copies' k_s)."""
-    import f2l.estimate.estimator as est
+    import f2l.estimate.sun_profile as profile
     from f2l.estimate import FaceObservation
     from f2l.estimate.estimator import SPECULAR_LEVELS
     from f2l.lighting.grid import LatLongGrid
     from f2l.synth.render import make_synthetic_set
 
     grid = LatLongGrid(*GRID)
-    real = est._elevation_profile
+    real = profile.pinned_copies
 
     def last_copy_wins(*args, **kwargs):
         out = real(*args, **kwargs)
@@ -92,7 +92,7 @@ def test_the_highlight_k_s_reported_is_the_chosen_copys_when_a_pinned_copy_wins(
             out = (*out[:3], totals)
         return out
 
-    monkeypatch.setattr(est, "_elevation_profile", last_copy_wins)
+    monkeypatch.setattr(profile, "pinned_copies", last_copy_wins)
     face = next(iter(make_synthetic_set(1, grid, 3, image_size=96, overcast_fraction=0.0, specular=0.3, threads=1,
                                         sun_elevation_range_deg=(20.0, 50.0))))
     obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid, points=face.points)

@@ -59,7 +59,7 @@ class EstimatorConfig:
     # sun's elevation pinned at each of these (deg) are refined for sun_profile_iters L-BFGS
     # iterations; the estimate's sun direction is the posterior mean over the fit and its copies,
     # its probe their posterior mixture, weights exp(-sun_profile_temperature x relative excess
-    # objective) (estimator._elevation_profile); () = off. The free fit stalls in elevation (18
+    # objective) (f2l.estimate.sun_profile); () = off. The free fit stalls in elevation (18
     # iterations; fits pinned 10 deg apart found a lower objective for 94 of the 128 faces of
     # `make eval-real`), and where the face cannot tell the elevation apart the posterior mean
     # hedges. Tuning part (fitted mesh): mean Sun-ang 12.3 -> 11.7 deg, MAE (s) 0.204 -> 0.195;

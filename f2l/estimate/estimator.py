@@ -17,8 +17,6 @@ get T @ B precomputed once and least-squares initial points; other models use a 
 from __future__ import annotations
 
 import functools
-
-import math
 import time
 from functools import lru_cache
 
@@ -27,10 +25,12 @@ import torch
 
 from f2l.estimate.config import EstimateResult, EstimatorConfig  # noqa: F401  (re-exported)
 from f2l.estimate.latent import estimate_latent_sky
+from f2l.estimate.lbfgs import run_lbfgs
 from f2l.estimate.observation import (BLACK_LEVEL, CLIP_LEVEL, EstimationError, FaceObservation,  # noqa: F401
                                       clipped_pixels, highlight_pixels, usable_pixels)
 from f2l.estimate.params import BoxTransform
 from f2l.estimate.skin import _albedo_gmm_terms, albedo_prior_nll, skin_albedo_gmm, skin_albedo_mean
+from f2l.estimate.sun_profile import elevation_posterior
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import CompactSun, LatentSky, LinearRadiance, SunAngles
 from f2l.transport import Transport
@@ -387,7 +387,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     if prob.hybrid is not None and len(theta0) > 1 and 0 < cfg.sun_all_starts_iters < budget:
         # every start for a few iterations, then only the best: batched L-BFGS shares one line
         # search, so a poor start slows the good one down (and costs its share of each step)
-        variables, its = _lbfgs(prob, unpack, variables, cfg, cfg.sun_all_starts_iters)
+        variables, its = run_lbfgs(prob, unpack, variables, cfg, cfg.sun_all_starts_iters)
         iterations += its
         budget -= its
         with torch.no_grad():
@@ -400,7 +400,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
             if share < cfg.sun_core_min_share:  # overcast solution: no exact sun visibility needed
                 prob.hybrid.core_texels = 0
                 sun_core = 0.0
-    variables, its = _lbfgs(prob, unpack, variables, cfg, budget)
+    variables, its = run_lbfgs(prob, unpack, variables, cfg, budget)
     iterations += its
     with torch.no_grad():
         params, rho, rho_g = unpack(*variables)
@@ -416,19 +416,10 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     ks = prob.last_ks if prob.spec is not None else None  # the highlight's k_s of each start (sun_specular)
     if prob.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
         t_profile = time.perf_counter()
-        pinned = _elevation_profile(prob, unpack, tuple(v[best : best + 1] for v in variables), cfg, model)
-        if pinned is not None:  # the fit and its pinned copies: the posterior over the sun's elevation
-            params = torch.cat([params[best : best + 1], pinned[0]])
-            rho = torch.cat([rho[best : best + 1], pinned[1]])
-            rho_g = torch.cat([rho_g[best : best + 1], pinned[2]])
-            totals = np.concatenate([totals[best : best + 1], pinned[3]])
-            if ks is not None:
-                ks = torch.cat([ks[best : best + 1], prob.last_ks])
-            best = int(np.nanargmin(totals))
-            weights = _profile_weights(totals, cfg.sun_profile_temperature)
-            dirs = np.stack([model.sun_direction(p.numpy().astype(np.float64)) for p in params])
-            mean = (weights[:, None] * dirs).sum(0)
-            sun_direction = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 1e-9 else dirs[best]
+        post = elevation_posterior(prob, unpack, variables, (params, rho, rho_g, totals, ks), best, cfg, model)
+        if post is not None:  # the fit and its pinned copies (f2l.estimate.sun_profile)
+            params, rho, rho_g, totals, ks = post.params, post.albedo, post.ground_albedo, post.totals, post.ks
+            best, weights, sun_direction = post.best, post.weights, post.sun_direction
         profile_s = time.perf_counter() - t_profile
 
     with torch.no_grad():
@@ -531,67 +522,6 @@ def _estimate_linear_fit(obs, model, cfg: EstimatorConfig, prob: "_Problem", t_s
         timings={"precompute_s": prob.precompute_s, "fit_s": fit_s, "total_s": runtime},
         start_losses=[loss], num_pixels_used=int(prob.idx.size),
     )
-
-
-def _lbfgs(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, max_iter: int):
-    """Runs torch's L-BFGS (strong Wolfe) on the summed per-start objective; returns the
-    optimised leaf tensors and the iterations taken."""
-    leaves = [v.detach().clone().requires_grad_(True) for v in variables]
-    tolerance = cfg.tolerance
-    if prob.hybrid is not None:  # relative to the objective: ~1e-2 of data term at the start
-        with torch.no_grad():
-            start = prob.objective(*unpack(*leaves))[1].sum()
-        tolerance = cfg.tolerance * 1e-2 * float(start)
-    trained = leaves if cfg.fixed_albedo is None else leaves[:2]
-    optimiser = torch.optim.LBFGS(
-        trained, lr=1.0, max_iter=max_iter, tolerance_grad=1e-10, tolerance_change=tolerance,
-        history_size=20, line_search_fn="strong_wolfe",
-    )
-
-    def closure():
-        optimiser.zero_grad()
-        total, _ = prob.objective(*unpack(*leaves))
-        loss = total.sum()
-        loss.backward()
-        return loss
-
-    optimiser.step(closure)
-    state = optimiser.state[optimiser._params[0]]
-    return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))
-
-
-def _elevation_profile(prob: "_Problem", unpack, variables, cfg: EstimatorConfig, model):
-    """The fitted start (``variables``, one row) copied with its sun's elevation pinned at each of
-    ``cfg.sun_elevation_profile_deg`` (those within 2.5 deg of the fit left out) and the rest
-    refined for ``cfg.sun_profile_iters`` L-BFGS iterations: (params, albedo, ground albedo,
-    totals (K,)) or None when no elevation is left."""
-    el_idx = model.sun_layout.elevation
-    with torch.no_grad():
-        fitted = float(unpack(*variables)[0][0, el_idx])
-    pins = [math.radians(e) for e in cfg.sun_elevation_profile_deg if abs(math.radians(e) - fitted) > math.radians(2.5)]
-    if not pins:
-        return None
-    pin = torch.as_tensor(pins, dtype=variables[0].dtype)[:, None]
-
-    def unpack_pinned(x_theta, x_gnd, x_rho):
-        params, rho, rho_g = unpack(x_theta, x_gnd, x_rho)
-        return torch.cat([params[:, :el_idx], pin, params[:, el_idx + 1 :]], 1), rho, rho_g
-
-    copies = tuple(v.expand(len(pins), *v.shape[1:]).clone() for v in variables)
-    copies, _ = _lbfgs(prob, unpack_pinned, copies, cfg, cfg.sun_profile_iters)
-    with torch.no_grad():
-        params, rho, rho_g = unpack_pinned(*copies)
-        total, _ = prob.objective(params, rho, rho_g)
-    return params, rho, rho_g, total.numpy()
-
-
-def _profile_weights(totals: np.ndarray, temperature: float) -> np.ndarray:
-    """Posterior weights exp(-temperature (L - L_min) / L_min) over objective values, normalised
-    (non-finite values weigh 0)."""
-    finite = np.isfinite(totals)
-    lo = float(np.min(totals[finite]))
-    w = np.where(finite, np.exp(-temperature * (np.where(finite, totals, lo) - lo) / max(abs(lo), 1e-12)), 0.0)
-    return w / w.sum()
 
 
 def _sun_share(model, params: np.ndarray) -> float:

@@ -43,6 +43,7 @@ import torch
 import torch.nn.functional as F
 
 from f2l.estimate.config import EstimateResult, EstimatorConfig
+from f2l.estimate.lbfgs import minimise
 from f2l.estimate.observation import EstimationError, FaceObservation, clipped_pixels, usable_pixels
 from f2l.estimate.skin import albedo_prior_nll, skin_albedo_mean
 from f2l.models.capabilities import single_thread
@@ -313,21 +314,9 @@ def _probe_with_ground(model, params: np.ndarray, ground_albedo: float) -> np.nd
 
 
 def _lbfgs(objective, variables, cfg: EstimatorConfig, max_iter: int, fixed_albedo: bool):
-    """torch L-BFGS (strong Wolfe) on the summed per-start objective; (leaves, iterations)."""
-    leaves = [v.detach().clone().requires_grad_(True) for v in variables]
+    """:func:`f2l.estimate.lbfgs.minimise` with a change tolerance of ``cfg.tolerance`` x 1e-2 of
+    the starting data term; a fixed albedo (leaf 3) is not trained."""
     with torch.no_grad():
-        start = float(objective(*leaves)[1].sum())
-    trained = [leaves[i] for i in range(5) if not (fixed_albedo and i == 3)]
-    optimiser = torch.optim.LBFGS(trained, lr=1.0, max_iter=max_iter, tolerance_grad=1e-9,
-                                  tolerance_change=cfg.tolerance * 1e-2 * start, history_size=20,
-                                  line_search_fn="strong_wolfe")
-
-    def closure():
-        optimiser.zero_grad()
-        loss = objective(*leaves)[0].sum()
-        loss.backward()
-        return loss
-
-    optimiser.step(closure)
-    state = optimiser.state[optimiser._params[0]]
-    return tuple(v.detach() for v in leaves), int(state.get("n_iter", 0))
+        start = float(objective(*variables)[1].sum())
+    return minimise(objective, variables, max_iter, cfg.tolerance * 1e-2 * start, tolerance_grad=1e-9,
+                    frozen=(3,) if fixed_albedo else ())
