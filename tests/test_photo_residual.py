@@ -7,7 +7,7 @@ import pytest
 
 from f2l.lighting.grid import LatLongGrid, rotate_y
 from f2l.render.evaluate import residual_table
-from f2l.render.photo_residual import PhotoResidual, best_scale_l1, photo_residual
+from f2l.render.photo_residual import IDEAL_PEAK, PhotoResidual, best_scale_l1, ideal_photo, photo_residual
 from f2l.synth.render import make_synthetic_set
 
 GRID = LatLongGrid(32, 64)
@@ -54,6 +54,32 @@ def test_the_true_probe_explains_an_own_render_better_than_the_same_sky_turned_a
     assert fit.residual(3.0 * truth) == pytest.approx(r_truth)
     with pytest.raises(ValueError, match="grid"):
         fit.residual(np.ones((8, 16, 3)))
+
+
+def test_the_ideal_photo_is_the_forward_model_of_the_probe_with_the_photos_skin_colour(face):
+    """ideal_photo = k ⊙ T l at one exposure: for an own render (the same forward model plus noise
+    and 8-bit rounding) it is the photo itself up to that exposure; under another probe the truth no
+    longer explains it, the other probe does exactly; its brightest masked pixel is IDEAL_PEAK."""
+    record, truth, _ = face
+    mask = np.asarray(record.mask, bool)
+    ideal = ideal_photo(record, truth, threads=1)
+    assert ideal.dtype == np.float32 and ideal.shape == record.observed_rgb.shape
+    assert ideal[mask].max() == pytest.approx(IDEAL_PEAK, rel=1e-6)
+    observed = np.asarray(record.observed_rgb, np.float64)
+    lit = mask & (observed > 0.05).all(1) & (observed < 0.9).all(1)
+    ratio = ideal[lit] / observed[lit]
+    scale = np.median(ratio)
+    assert np.median(np.abs(ratio / scale - 1.0)) < 0.03  # per channel: the skin's colour is kept
+    assert photo_residual(ideal[mask], PhotoResidual(record).transport.matmul(
+        truth.reshape(-1, 3), dtype=np.float64)[np.flatnonzero(mask)]) < 1e-6
+    turned = rotate_y(truth, np.radians(120.0))
+    other = SimpleNamespace(**{**vars(record), "observed_rgb": ideal_photo(record, turned, threads=1)})
+    fit = PhotoResidual(other)
+    assert fit.residual(turned) < 1e-6 and fit.residual(truth) > 0.05
+    with pytest.raises(ValueError, match="grid"):
+        ideal_photo(record, np.ones((8, 16, 3)))
+    with pytest.raises(ValueError, match="black"):
+        ideal_photo(record, np.zeros_like(truth))
 
 
 def test_the_table_counts_far_off_suns_that_fit_the_photo_as_well_as_the_truth():

@@ -234,8 +234,9 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
         assert 0.0 < float(r["photo residual"]) < 1.0 and 0.0 < float(r["photo residual, truth"]) < 1.0
     assert all(r["photo residual"] == "nan" for r in rows if r["method"] == "uniform sky")
     assert "Does the photo prefer the truth?" in md
-    # the geometry share on the same folder layout as make eval-real: six variants per face; the
-    # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored
+    # the geometry share on the same folder layout as make eval-real: seven variants per face; the
+    # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored;
+    # the ideal photo (f2l's own render of the truth) is scored like the others
     eval_dir = tmp_path / "eval"
     eval_dir.mkdir()
     for name, src in (("pbr", pbr), ("fitted", fitted), ("true_geometry", twins)):
@@ -250,6 +251,8 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     for r in share_rows:
         if r["variant"] == "true":
             assert abs(r["MAE (s)"] - twin_rows[r["case"]]) < 1e-3 * max(1.0, twin_rows[r["case"]])
+    ideal = [r for r in share_rows if r["variant"] == "true, ideal photo"]
+    assert len(ideal) == 2 and all(0.0 <= r["MAE (s)"] < 1.0 for r in ideal)
 
 
 def test_render_skies_writes_a_hosek_wilkie_corpus_that_build_prior_reads(tmp_path):

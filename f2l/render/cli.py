@@ -111,7 +111,8 @@ def eval_real_geometry_cmd(
     out: Optional[Path] = typer.Option(None, "--out", help="Where geometry_share.md goes (default: EVAL_DIR)."),
     threads: int = typer.Option(2, help="Threads."),
 ) -> None:
-    """The face fit's share of the error split into normals and occluders (f2l.render.geometry_share)."""
+    """The face fit's share of the error split into normals and occluders, and what is left on an
+    ideal photo (f2l's own render of the truth on the true mesh; f2l.render.geometry_share)."""
     from f2l.render.geometry_share import geometry_share, write_share
 
     for sub in ("pbr", "fitted", "true_geometry"):

@@ -1,4 +1,5 @@
-"""The face fit's share of the error, split into normals and occluders (``f2l eval-real-geometry``).
+"""The face fit's share of the error, split into normals and occluders (``f2l eval-real-geometry``),
+and what is left on an ideal photo.
 
 For each fitted face of a ``make eval-real`` folder that has a true-geometry twin
 (``f2l twin-geometry``), the same photo pixels (those both meshes cover) are estimated with the
@@ -14,11 +15,17 @@ fitted mesh + true body below the chin        fitted / fitted, also blocked by t
                                               triangles below the chin (seen from the fitted points)
 true normals, no occluder                     true / front hemisphere of the true normals only
 true                                          true / true (the twin record itself)
+true, ideal photo                             true / true, and the photo replaced by f2l's own
+                                              Lambertian render of the true probe through them
+                                              (:func:`f2l.render.photo_residual.ideal_photo`)
 ============================================  ==========================================================
 
 The table gives per variant and part (tuning: even cases, reporting: odd) the mean Sun-ang over
 sunny cases (and split by the sun in front of the face or behind the head), MAE (s) and
-Full-dω MAE (l). It attributes the geometry gap to shading normals and to cast shadows.
+Full-dω MAE (l). It attributes the geometry gap to shading normals and to cast shadows. The last
+row is the floor the lighting model and its priors set: what remains when the photo holds nothing
+the estimator leaves out (no specular, interreflection, skin texture, clipping or noise); the gap
+between it and "true" is the renderer's physics.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 VARIANTS = ("fitted", "fitted normals, no occluder", "fitted normals, true occlusion",
-            "fitted mesh + true body below the chin", "true normals, no occluder", "true")
+            "fitted mesh + true body below the chin", "true normals, no occluder", "true", "true, ideal photo")
 BELOW_CHIN_CM = 1.0  # true triangles whose centroid lies this far below the lowest percent of face points
 
 
@@ -37,8 +44,11 @@ def _pack(mask: np.ndarray) -> np.ndarray:
     return np.packbits(mask, axis=1, bitorder="little")
 
 
-def variant_inputs(fitted, twin, render_dir: Path, meta: dict, threads: int = 2) -> dict:
-    """{variant: (normals, visibility_bits)} for one face; pixels and colours are the twin's."""
+def variant_inputs(fitted, twin, render_dir: Path, meta: dict, truth_probe: np.ndarray,
+                   threads: int = 2) -> dict:
+    """{variant: (normals, visibility_bits, observed_rgb)} for one face; pixels are the twin's, and so
+    are the colours except in the ideal photo (``truth_probe``: the true probe on the record's grid)."""
+    from f2l.render.photo_residual import ideal_photo
     from f2l.transport import compute_visibility
     from f2l.transport.visibility import front_mask
 
@@ -54,13 +64,15 @@ def variant_inputs(fitted, twin, render_dir: Path, meta: dict, threads: int = 2)
     below = vertices[faces].mean(1)[:, 1] < chin_y - BELOW_CHIN_CM
     body_below = compute_visibility(vertices, faces[below], points, fn, grid, threads=threads) if below.any() \
         else np.full_like(fitted.visibility_bits, 255)
+    photo = twin.observed_rgb
     return {
-        "fitted": (fn, fitted.visibility_bits),
-        "fitted normals, no occluder": (fn, front_fitted),
-        "fitted normals, true occlusion": (fn, np.bitwise_and(twin.visibility_bits, front_fitted)),
-        "fitted mesh + true body below the chin": (fn, np.bitwise_and(fitted.visibility_bits, body_below)),
-        "true normals, no occluder": (tn, _pack(front_mask(tn, grid))),
-        "true": (tn, twin.visibility_bits),
+        "fitted": (fn, fitted.visibility_bits, photo),
+        "fitted normals, no occluder": (fn, front_fitted, photo),
+        "fitted normals, true occlusion": (fn, np.bitwise_and(twin.visibility_bits, front_fitted), photo),
+        "fitted mesh + true body below the chin": (fn, np.bitwise_and(fitted.visibility_bits, body_below), photo),
+        "true normals, no occluder": (tn, _pack(front_mask(tn, grid)), photo),
+        "true": (tn, twin.visibility_bits, photo),
+        "true, ideal photo": (tn, twin.visibility_bits, ideal_photo(twin, truth_probe, threads=threads)),
     }
 
 
@@ -93,11 +105,11 @@ def geometry_share(eval_dir: Path, models: list[str], threads: int = 2, progress
         sky = meta["sky"]
         overcast = sky["kind"] == "overcast"
         gt_sun = None if overcast else np.asarray(sky["sun_direction"], np.float64)
-        inputs = variant_inputs(fitted, twin, render_dir, meta, threads)
+        inputs = variant_inputs(fitted, twin, render_dir, meta, truth, threads)
         for name in models:
             model = load_model(name, grid)
-            for variant, (normals, bits) in inputs.items():
-                obs = FaceObservation(normals, twin.observed_rgb, twin.mask, bits, grid, face_id=fitted.face_id)
+            for variant, (normals, bits, photo) in inputs.items():
+                obs = FaceObservation(normals, photo, twin.mask, bits, grid, face_id=fitted.face_id)
                 try:
                     res = estimate(obs, model, cfg)
                 except EstimationError:
@@ -140,6 +152,6 @@ def write_share(rows: list[dict], out_dir: Path) -> Path:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "geometry_share.md"
-    write_text_atomic(path, "## The face fit's share: normals or occluders\n\n" + share_table(rows) + "\n")
+    write_text_atomic(path, "## The face fit's share: normals or occluders, and an ideal photo\n\n" + share_table(rows) + "\n")
     write_text_atomic(out_dir / "geometry_share_rows.json", json.dumps(rows, indent=1))
     return path

@@ -22,7 +22,9 @@ import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["best_scale_l1", "photo_residual", "PhotoResidual"]
+__all__ = ["best_scale_l1", "photo_residual", "ideal_photo", "PhotoResidual", "IDEAL_PEAK"]
+
+IDEAL_PEAK = 0.8  # the ideal photo's brightest pixel: below the estimator's clipped level (0.95)
 
 
 def best_scale_l1(observed: np.ndarray, shading: np.ndarray) -> float:
@@ -49,6 +51,36 @@ def photo_residual(observed: np.ndarray, shading: np.ndarray) -> float:
         return float("nan")
     fitted = np.stack([best_scale_l1(o[:, c], s[:, c]) * s[:, c] for c in range(o.shape[1])], 1)
     return float(np.abs(o - fitted).sum() / total)
+
+
+def ideal_photo(record, probe: np.ndarray, threads: int = 2) -> np.ndarray:
+    """f2l's own forward model of ``record``'s photo under ``probe`` (H, W, 3, its grid): (N, 3) float32.
+
+    Every pixel is ``k_c (T l)_pc`` (Lambertian, the record's normals and visibility), with the
+    skin's RGB albedo ``k`` the photo's per-channel L1 optimum (:func:`best_scale_l1` over its
+    usable pixels, as in the photo residual) and one exposure putting the brightest masked pixel at
+    :data:`IDEAL_PEAK`: no specular, interreflection, texture, clipping, noise or quantisation.
+    Estimating from it measures what the lighting model and its priors can do on that geometry
+    when the photo holds nothing the model leaves out."""
+    from f2l.estimate.observation import FaceObservation, usable_pixels
+    from f2l.transport import Transport
+
+    grid = LatLongGrid(record.grid_height, record.grid_width)
+    p = np.asarray(probe, np.float64)
+    if p.shape != grid.shape + (3,):
+        raise ValueError(f"probe {p.shape} is not on the record's {grid.height}x{grid.width} grid")
+    observed = np.asarray(record.observed_rgb, np.float64)
+    obs = FaceObservation(normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
+                          visibility_bits=record.visibility_bits, grid=grid, face_id=record.face_id)
+    idx = usable_pixels(obs)
+    transport = Transport(np.asarray(record.visibility_bits), np.asarray(record.normals), grid, threads=threads)
+    shading = transport.matmul(p.reshape(-1, 3), dtype=np.float64)
+    k = np.array([best_scale_l1(observed[idx, c], shading[idx, c]) for c in range(3)])
+    photo = np.maximum(shading * k, 0.0)
+    peak = float(photo[np.asarray(record.mask, bool)].max(initial=0.0))
+    if not peak > 0:
+        raise ValueError(f"{record.face_id}: the probe leaves every masked pixel black")
+    return (photo * (IDEAL_PEAK / peak)).astype(np.float32)
 
 
 class PhotoResidual:
