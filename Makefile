@@ -119,8 +119,9 @@ eval-real: $(STAMP)
 
 # The face fit's share split into normals and occluders (README "The face fit's share"): sunsky
 # and ae on the same pixels with normals and visibility from the fitted mesh, the true body or
-# neither, and on an ideal photo (f2l's own render of the truth on the true mesh); table in
-# build/eval_real/geometry_share.md. Needs `make eval-real` first (~25 min on 2 cores).
+# neither, and on an ideal photo (f2l's own render of the truth on the true mesh, with and without
+# the skin's gloss); table in
+# build/eval_real/geometry_share.md. Needs `make eval-real` first (31 min on 2 cores).
 eval-real-geometry: $(STAMP)
 	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
 

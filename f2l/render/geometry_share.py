@@ -18,6 +18,9 @@ true                                          true / true (the twin record itsel
 true, ideal photo                             true / true, and the photo replaced by f2l's own
                                               Lambertian render of the true probe through them
                                               (:func:`f2l.render.photo_residual.ideal_photo`)
+true, ideal photo + gloss                     the same plus the skin's glossy highlight of the
+                                              whole probe, at the case's own roughness and
+                                              specular level (:mod:`f2l.render.highlight`)
 ============================================  ==========================================================
 
 The table gives per variant and part (tuning: even cases, reporting: odd) the mean Sun-ang over
@@ -25,7 +28,8 @@ sunny cases (and split by the sun in front of the face or behind the head), MAE 
 Full-dω MAE (l). It attributes the geometry gap to shading normals and to cast shadows. The last
 row is the floor the lighting model and its priors set: what remains when the photo holds nothing
 the estimator leaves out (no specular, interreflection, skin texture, clipping or noise); the gap
-between it and "true" is the renderer's physics.
+between it and "true" is the renderer's physics. The row with gloss puts the first of those back
+on its own.
 """
 
 from __future__ import annotations
@@ -36,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 VARIANTS = ("fitted", "fitted normals, no occluder", "fitted normals, true occlusion",
-            "fitted mesh + true body below the chin", "true normals, no occluder", "true", "true, ideal photo")
+            "fitted mesh + true body below the chin", "true normals, no occluder", "true", "true, ideal photo",
+            "true, ideal photo + gloss")
 BELOW_CHIN_CM = 1.0  # true triangles whose centroid lies this far below the lowest percent of face points
 
 
@@ -73,7 +78,19 @@ def variant_inputs(fitted, twin, render_dir: Path, meta: dict, truth_probe: np.n
         "true normals, no occluder": (tn, _pack(front_mask(tn, grid)), photo),
         "true": (tn, twin.visibility_bits, photo),
         "true, ideal photo": (tn, twin.visibility_bits, ideal_photo(twin, truth_probe, threads=threads)),
+        "true, ideal photo + gloss": (tn, twin.visibility_bits,
+                                      ideal_photo(twin, truth_probe, threads=threads, gloss=case_gloss(meta))),
     }
+
+
+def case_gloss(meta: dict):
+    """The rendered skin's gloss (:class:`f2l.render.highlight.Gloss`) from a case's meta file:
+    principled roughness, F0 = 0.08 × specular, and the head's skin albedo."""
+    from f2l.render.highlight import Gloss
+
+    material = meta["material"]
+    return Gloss(float(material["skin_roughness"]), 0.08 * float(material["skin_specular"]),
+                 tuple(float(c) for c in meta["head"]["skin_albedo"]))
 
 
 def geometry_share(eval_dir: Path, models: list[str], threads: int = 2, progress=None) -> list[dict]:

@@ -53,7 +53,7 @@ def photo_residual(observed: np.ndarray, shading: np.ndarray) -> float:
     return float(np.abs(o - fitted).sum() / total)
 
 
-def ideal_photo(record, probe: np.ndarray, threads: int = 2) -> np.ndarray:
+def ideal_photo(record, probe: np.ndarray, threads: int = 2, gloss=None) -> np.ndarray:
     """f2l's own forward model of ``record``'s photo under ``probe`` (H, W, 3, its grid): (N, 3) float32.
 
     Every pixel is ``k_c (T l)_pc`` (Lambertian, the record's normals and visibility), with the
@@ -61,7 +61,11 @@ def ideal_photo(record, probe: np.ndarray, threads: int = 2) -> np.ndarray:
     usable pixels, as in the photo residual) and one exposure putting the brightest masked pixel at
     :data:`IDEAL_PEAK`: no specular, interreflection, texture, clipping, noise or quantisation.
     Estimating from it measures what the lighting model and its priors can do on that geometry
-    when the photo holds nothing the model leaves out."""
+    when the photo holds nothing the model leaves out.
+
+    With ``gloss`` (:class:`f2l.render.highlight.Gloss`) the masked pixels also get the skin's
+    glossy highlight of the whole probe (:func:`f2l.render.highlight.glossy_highlight`, the
+    record's 3-D points for the view), at the exposure ``median_c(k_c / albedo_c)``."""
     from f2l.estimate.observation import FaceObservation, usable_pixels
     from f2l.transport import Transport
 
@@ -77,7 +81,15 @@ def ideal_photo(record, probe: np.ndarray, threads: int = 2) -> np.ndarray:
     shading = transport.matmul(p.reshape(-1, 3), dtype=np.float64)
     k = np.array([best_scale_l1(observed[idx, c], shading[idx, c]) for c in range(3)])
     photo = np.maximum(shading * k, 0.0)
-    peak = float(photo[np.asarray(record.mask, bool)].max(initial=0.0))
+    mask = np.asarray(record.mask, bool)
+    if gloss is not None:
+        from f2l.render.highlight import glossy_highlight
+
+        exposure = float(np.median(k / np.asarray(gloss.albedo_rgb, np.float64)))
+        bits = np.asarray(record.visibility_bits)
+        photo[mask] += exposure * glossy_highlight(np.asarray(record.normals)[mask], np.asarray(record.points)[mask],
+                                                   bits[mask], grid, p, gloss.roughness, gloss.f0)
+    peak = float(photo[mask].max(initial=0.0))
     if not peak > 0:
         raise ValueError(f"{record.face_id}: the probe leaves every masked pixel black")
     return (photo * (IDEAL_PEAK / peak)).astype(np.float32)
