@@ -11,7 +11,7 @@ pytest.importorskip("mitsuba")
 pytest.importorskip("anny")
 
 from f2l.lighting.grid import LatLongGrid, direction_from_angles  # noqa: E402
-from f2l.render.hdri import OUTDOOR_MAPS, decode_js_module, load_map, repair_ringing  # noqa: E402
+from f2l.render.hdri import HELD_OUT_MAPS, OUTDOOR_MAPS, decode_js_module, load_map, repair_ringing  # noqa: E402
 from f2l.render.scene import (MapLighting, RenderSettings, SunSkyLighting, ground_truth_probe,  # noqa: E402
                               mitsuba, render_head)
 
@@ -25,12 +25,27 @@ def _eval_emitter(emitter, direction):
 
 def test_shipped_maps_are_outdoor_daylight_in_f2l_layout():
     grid = LatLongGrid(256, 512)
-    for name in OUTDOOR_MAPS:
+    for name in OUTDOOR_MAPS + HELD_OUT_MAPS:
         radiance = load_map(name)
         assert radiance.shape == (256, 512, 3) and radiance.dtype == np.float32
         assert np.isfinite(radiance).all() and radiance.min() >= 0.0
         energy = (radiance.mean(axis=-1) * grid.solid_angles)
         assert energy[:128].sum() > energy[128:].sum(), f"{name}: the sky (row 0 = zenith) must be the upper half"
+
+
+def test_held_out_maps_are_drawn_only_when_asked_and_the_eval_draws_stay():
+    """`--maps held-out` draws only the three maps no default was chosen on; the evaluation set's
+    draws (make eval-real, seed 0) are those it was rendered with."""
+    from f2l.render.dataset import RenderOptions, draw_case
+
+    held_out = RenderOptions(maps="held-out", sunsky_fraction=0.0)
+    sources = {draw_case(1, i, held_out)["lighting"]["source"] for i in range(24)}
+    assert sources == set(HELD_OUT_MAPS) and not sources & set(OUTDOOR_MAPS)
+    assert draw_case(0, 3)["lighting"] == {"source": "bridge", "rotation_deg": 321.8667}
+    assert draw_case(0, 5)["lighting"]["source"] == "sunsky"
+    assert {draw_case(0, i)["lighting"]["source"] for i in range(64)} <= set(OUTDOOR_MAPS) | {"sunsky"}
+    with pytest.raises(ValueError, match="maps must be one of"):
+        RenderOptions(maps="indoor")
 
 
 def test_repair_ringing_keeps_energy_and_removes_negatives():
@@ -234,6 +249,11 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
         assert 0.0 < float(r["photo residual"]) < 1.0 and 0.0 < float(r["photo residual, truth"]) < 1.0
     assert all(r["photo residual"] == "nan" for r in rows if r["method"] == "uniform sky")
     assert "Does the photo prefer the truth?" in md
+    # a set held out from tuning (`--held-out`): one table over every case, no tuning part
+    run("eval-real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out")
+    held = (tmp_path / "held_out" / "eval_real.md").read_text()
+    assert "All cases, held out from tuning (2 cases" in held and "Tuning part" not in held
+    assert "Breakdowns (all cases)" in held
     # the geometry share on the same folder layout as make eval-real: seven variants per face; the
     # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored;
     # the ideal photo (f2l's own render of the truth) is scored like the others

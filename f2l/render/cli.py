@@ -24,6 +24,7 @@ def render_faces_cmd(
     head: str = typer.Option("anny", help="anny (random Anny adults) or canonical (MediaPipe's canonical face, closed: an ablation)."),
     clipping: bool = typer.Option(True, "--clipping/--no-clipping", help="Expose so the brightest few % of the face clip, or keep the face below 0.9."),
     sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
+    maps: str = typer.Option("eval", help="Which real maps: eval (the seven of `make eval-real`) or held-out (city, sunrise, sunset: no default was chosen on them)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies."""
@@ -39,7 +40,7 @@ def render_faces_cmd(
         fail(str(exc))
     try:
         options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
-                                clipping=clipping, sunsky_fraction=sunsky_fraction)
+                                clipping=clipping, sunsky_fraction=sunsky_fraction, maps=maps)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
@@ -86,6 +87,7 @@ def eval_real_cmd(
     render: Path = typer.Argument(..., help="The `f2l render-faces` folder (meta/, probes/)."),
     est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
     out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
+    held_out: bool = typer.Option(False, "--held-out", help="No tuning part: every case reports (a set no default was chosen on, e.g. `render-faces --maps held-out`)."),
 ) -> None:
     """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
     from f2l.render.evaluate import evaluate_real, write_report
@@ -100,6 +102,8 @@ def eval_real_cmd(
     rows = evaluate_real(render, runs)
     if not rows:
         fail(f"{render}: no rendered case found (meta/*.json)")
+    if held_out:
+        rows = [{**r, "split": "report"} for r in rows]
     summary = write_report(rows, out)
     typer.echo((out / "eval_real.md").read_text())
     typer.echo(json.dumps(summary))

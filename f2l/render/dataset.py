@@ -5,8 +5,9 @@ one switch re-renders *the same* person, pose, camera and sky):
 
 - a head (:func:`f2l.render.heads.anny_head`: random Anny adult, skin light to dark, lips, brows,
   hair, shirt, eyes), posed with yaw ±30°, pitch ±10°, roll ±5°;
-- lighting: half the cases one of the seven CC0 outdoor maps (:mod:`f2l.render.hdri`) turned by a
-  random angle about +Y, half a Hosek–Wilkie sky (sun 5–80° high, any azimuth, turbidity 2–8,
+- lighting: half the cases one of the seven CC0 outdoor maps (:mod:`f2l.render.hdri`; ``maps=
+  "held-out"``: the three held out from tuning) turned by a random angle about +Y, half a
+  Hosek–Wilkie sky (sun 5–80° high, any azimuth, turbidity 2–8,
   ground albedo 0.1–0.3);
 - skin: Mitsuba's ``principled`` BSDF, roughness 0.3–0.7, specular 0.35–0.6 (F0 ≈ 0.03–0.05);
 - a pinhole camera, horizontal field of view 20–60°, the head 35–55% of the frame's width;
@@ -56,10 +57,15 @@ class RenderOptions:
     head: str = "anny"
     clipping: bool = True
     sunsky_fraction: float = 0.5
+    maps: str = "eval"  # a key of f2l.render.hdri.MAP_SETS
 
     def __post_init__(self):
+        from f2l.render.hdri import MAP_SETS
+
         if self.head not in HEADS:
             raise ValueError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if self.maps not in MAP_SETS:
+            raise ValueError(f"maps must be one of {', '.join(MAP_SETS)}, got {self.maps!r}")
         if self.image_px < 32 or self.spp < 1 or self.max_depth < 2:
             raise ValueError("image_px >= 32, spp >= 1 and max_depth >= 2 are required")
         if not 0.0 <= self.sunsky_fraction <= 1.0:
@@ -72,7 +78,7 @@ def _stream(seed: int, index: int, what: int) -> np.random.Generator:
 
 def draw_case(seed: int, index: int, options: RenderOptions = RenderOptions()) -> dict:
     """Every random choice of case ``index`` except the head's own (JSON-ready)."""
-    from f2l.render.hdri import OUTDOOR_MAPS
+    from f2l.render.hdri import MAP_SETS
 
     light_rng, cam_rng, mat_rng = _stream(seed, index, 2), _stream(seed, index, 3), _stream(seed, index, 4)
     if light_rng.uniform() < options.sunsky_fraction:
@@ -81,7 +87,7 @@ def draw_case(seed: int, index: int, options: RenderOptions = RenderOptions()) -
                     "turbidity": round(light_rng.uniform(2.0, 8.0), 4),
                     "ground_albedo": round(light_rng.uniform(0.1, 0.3), 4)}
     else:
-        lighting = {"source": str(light_rng.choice(OUTDOOR_MAPS)),
+        lighting = {"source": str(light_rng.choice(MAP_SETS[options.maps])),
                     "rotation_deg": round(light_rng.uniform(0.0, 360.0), 4)}
     fov = cam_rng.uniform(20.0, 60.0)
     width_fraction = cam_rng.uniform(0.35, 0.55)

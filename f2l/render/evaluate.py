@@ -443,13 +443,18 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     n = {s: len({r["case"] for r in rows if r["split"] == s}) for s in SPLITS}
     sunny = len({r["case"] for r in rows if r["split"] == "report" and r["sky_kind"] == "clear"})
-    text = (f"## Reporting part ({n['report']} cases, {sunny} with a sun; odd case indices)\n\n"
-            + summary_table(rows, "report")
-            + f"\n\n## Tuning part ({n['tune']} cases; even case indices)\n\n" + summary_table(rows, "tune")
-            + "\n\n## Breakdowns (reporting part)\n\n" + breakdown_table(rows, "report")
-            + "\n\n## Diagnostics (reporting part; where the error comes from, not §5.1 metrics)\n\n"
+    if n["tune"]:
+        text = (f"## Reporting part ({n['report']} cases, {sunny} with a sun; odd case indices)\n\n"
+                + summary_table(rows, "report")
+                + f"\n\n## Tuning part ({n['tune']} cases; even case indices)\n\n" + summary_table(rows, "tune"))
+    else:  # a held-out set (`eval-real --held-out`): every case reports
+        text = (f"## All cases, held out from tuning ({n['report']} cases, {sunny} with a sun)\n\n"
+                + summary_table(rows, "report"))
+    part = "reporting part" if n["tune"] else "all cases"
+    text += (f"\n\n## Breakdowns ({part})\n\n" + breakdown_table(rows, "report")
+            + f"\n\n## Diagnostics ({part}; where the error comes from, not §5.1 metrics)\n\n"
             + diagnostics_table(rows, "report")
-            + "\n\n## Sun elevation bias (reporting part; median elevation error / mean Sun-ang (cases))\n\n"
+            + f"\n\n## Sun elevation bias ({part}; median elevation error / mean Sun-ang (cases))\n\n"
             + elevation_bias_table(rows, "report")
             + "\n\n## Does the photo prefer the truth? (both parts; f2l's Lambertian forward model through each record)\n\n"
             + residual_table(rows) + "\n")

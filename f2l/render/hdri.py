@@ -1,6 +1,6 @@
 """Real outdoor HDR maps for the realistic face renderer (``f2l render-faces``).
 
-The maps are seven CC0 lat-long EXRs of the npm package ``@pmndrs/assets`` 1.7.0
+The maps are ten CC0 lat-long EXRs of the npm package ``@pmndrs/assets`` 1.7.0
 (``hdri/NAME.exr.js``: ``export default 'data:application/exr;base64,…'``; 512 × 256, half float,
 DWAB-compressed). :func:`import_pmndrs` decodes them once into ``f2l/render/data/hdri/NAME.exr``
 (float32, ZIP) and they ship with f2l; nothing is fetched at run time. DWAB is lossy: around each
@@ -9,6 +9,12 @@ sun its 8 × 8 cosine blocks ring, with negative texels down to −0.3 × the pe
 part scaled so that the patch keeps its signed energy Σ L dω (clamping alone would add the
 positive side lobes' energy). Re-create them with
 ``make hdri-import`` (``npm pack @pmndrs/assets@1.7.0``).
+
+Two sets: :data:`OUTDOOR_MAPS`, the seven that ``make eval-real`` draws from (its tuning part has
+chosen f2l's defaults), and :data:`HELD_OUT_MAPS`, the package's three other outdoor daylight maps
+(``city``: overcast, buildings; ``sunrise``: a field, sun at 8°; ``sunset``: a square by the
+water, sun at 3°), which no default was chosen on (``make eval-real-heldout``). The package's
+other maps are interiors or night.
 
 Their lat-long layout is f2l's (``docs/conventions.md``): row 0 is the zenith, the sky is the
 upper half. Their azimuth origin is arbitrary, and the renderer turns each map by a random angle
@@ -25,17 +31,22 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OUTDOOR_MAPS", "PMNDRS_VERSION", "hdri_path", "import_pmndrs", "load_map", "repair_ringing"]
+__all__ = ["HELD_OUT_MAPS", "MAP_SETS", "OUTDOOR_MAPS", "PMNDRS_VERSION", "hdri_path", "import_pmndrs", "load_map",
+           "repair_ringing"]
 
 PMNDRS_VERSION = "1.7.0"
-# Outdoor daylight maps of the package (the others are interiors or night).
+# The outdoor daylight maps of the package: the evaluation's seven, and three held out from every
+# choice of f2l's defaults (module docstring).
 OUTDOOR_MAPS = ("bridge", "dawn", "esplanade", "forest", "park", "sky", "venice")
+HELD_OUT_MAPS = ("city", "sunrise", "sunset")
+MAP_SETS = {"eval": OUTDOOR_MAPS, "held-out": HELD_OUT_MAPS}
 
 
 def hdri_path(name: str) -> Path:
-    """Path of the shipped map ``name`` (one of :data:`OUTDOOR_MAPS`)."""
-    if name not in OUTDOOR_MAPS:
-        raise ValueError(f"unknown HDR map {name!r}; one of {', '.join(OUTDOOR_MAPS)}")
+    """Path of the shipped map ``name`` (one of :data:`OUTDOOR_MAPS` or :data:`HELD_OUT_MAPS`)."""
+    known = OUTDOOR_MAPS + HELD_OUT_MAPS
+    if name not in known:
+        raise ValueError(f"unknown HDR map {name!r}; one of {', '.join(known)}")
     return Path(str(resources.files("f2l.render").joinpath("data", "hdri", f"{name}.exr")))
 
 
@@ -94,7 +105,7 @@ def repair_ringing(image: np.ndarray, negative_below: float = -1e-3, grow: int =
     return out.astype(np.float32)
 
 
-def import_pmndrs(package: Path, out_dir: Path, names=OUTDOOR_MAPS) -> list[Path]:
+def import_pmndrs(package: Path, out_dir: Path, names=OUTDOOR_MAPS + HELD_OUT_MAPS) -> list[Path]:
     """Decode ``hdri/NAME.exr.js`` of an unpacked ``@pmndrs/assets`` (a folder or its ``npm pack``
     tarball) into float32 ZIP EXRs ``out_dir/NAME.exr``; returns the written paths."""
     from f2l.io.exr import read_exr, write_exr
