@@ -119,7 +119,8 @@ eval-real: $(STAMP)
 
 # On maps no default was chosen on (README "On maps held out from tuning"): EVAL_HELDOUT_N cases
 # under the package's three other outdoor maps (city, sunrise, sunset; f2l.render.hdri.HELD_OUT_MAPS),
-# rendered, fitted and estimated like eval-real; every case reports (~10 min on 2 cores).
+# rendered, fitted and estimated like eval-real; every case reports (about 20 min on 2 cores:
+# rendering 12 min, fit, estimate and scoring 7 min).
 EVAL_HELDOUT := build/eval_real_heldout
 EVAL_HELDOUT_N ?= 32
 eval-real-heldout: $(STAMP)
