@@ -122,7 +122,7 @@ eval-real: $(STAMP)
 # rendered, fitted and estimated like eval-real; every case reports (about 20 min on 2 cores:
 # rendering 12 min, fit, estimate and scoring 7 min).
 EVAL_HELDOUT := build/eval_real_heldout
-EVAL_HELDOUT_N ?= 32
+EVAL_HELDOUT_N ?= 64
 eval-real-heldout: $(STAMP)
 	$(BIN)/f2l render-faces --out $(EVAL_HELDOUT)/pbr --n $(EVAL_HELDOUT_N) --seed 1 --sunsky-fraction 0 --maps held-out --json
 	$(BIN)/f2l fit-faces $(EVAL_HELDOUT)/pbr/photos --out $(EVAL_HELDOUT)/fitted --gt-probes $(EVAL_HELDOUT)/pbr/probes --json
