@@ -103,3 +103,72 @@ def test_the_elevation_bias_table_splits_sky_sources_and_bands_and_leaves_out_ba
     assert cells[1] == "+3.0° / 6° (2)"  # Hosek–Wilkie 15–45°: the tuning row is left out
     assert cells[4] == "+13.0° / 20° (1)" and cells[7] == "-20.0° / 30° (1)"
     assert cells[0] == "—" and "uniform sky" not in table
+
+
+def _sky_with_lobe(sun, grid=GRID, kappa=3000.0, energy=40.0):
+    """A blue-ish sky gradient plus a vMF sun lobe of ``energy`` per channel × (1, 0.9, 0.8)."""
+    d = grid.directions
+    probe = np.zeros(grid.shape + (3,))
+    probe[: grid.sky_rows] = np.array([0.5, 0.7, 1.0]) * (1.0 + 0.5 * d[: grid.sky_rows, :, 1:2])
+    lobe = np.exp(kappa * (d @ sun - 1.0))
+    lobe /= (lobe * grid.solid_angles).sum()
+    return probe + energy * lobe[..., None] * np.array([1.0, 0.9, 0.8])
+
+
+def test_moving_a_sun_onto_itself_or_back_changes_little_and_keeps_its_energy():
+    from f2l.render.evaluate import sun_disk_radius_deg, sun_moved
+
+    grid = LatLongGrid(64, 128)
+    other = direction_from_angles(np.radians(15.0), -2.0)
+    probe = _sky_with_lobe(SUN, grid)
+    weights = (grid.solid_angles * grid.upper_mask)[..., None]
+    moved = sun_moved(probe, grid, SUN, other)
+    # the upper hemisphere's energy, per channel, is kept
+    np.testing.assert_allclose((moved * weights).sum((0, 1)), (probe * weights).sum((0, 1)), rtol=1e-12)
+    # the sun is now in the true sun's disk, and its old place holds only sky
+    from f2l.metrics.lighting import cap_mask
+    disk = cap_mask(grid, other, sun_disk_radius_deg(grid))
+    old = cap_mask(grid, SUN, 4.0)
+    assert (moved[disk] * grid.solid_angles[disk][:, None]).sum(0)[0] > 0.95 * 40.0
+    assert moved[old].max() < 2.0 and probe[old].max() > 100.0
+    # moved back, the metrics are the original's within the disk's spread
+    from f2l.metrics import rendering_metrics
+    back = sun_moved(moved, grid, other, SUN)
+    assert rendering_metrics(back, probe, grid)["MAE (s)"] < 0.01
+    # a sky with no sun is left as it is (nothing above the ring's median moves)
+    sky = _sky_with_lobe(SUN, grid, energy=0.0)
+    assert np.abs(sun_moved(sky, grid, SUN, other) - sky).max() < 0.05
+
+
+def test_the_sun_at_the_truth_removes_a_misplaced_suns_error_but_not_a_colour_cast():
+    grid = LatLongGrid(64, 128)
+    truth = _sky_with_lobe(SUN, grid)
+    wrong = direction_from_angles(np.radians(70.0), 2.0)
+    estimate = _sky_with_lobe(wrong, grid) * np.array([0.9, 1.0, 1.15])
+    d = diagnostics(estimate, truth, grid, SUN, est_sun_direction=wrong)
+    from f2l.metrics import evaluate_pair
+    m = evaluate_pair(estimate, truth, grid, overcast=False, est_sun_dir=wrong, gt_sun_dir=SUN)
+    assert m["MAE (s)"] > 0.1 and m["Full-dω MAE (l)"] > 0.05
+    assert d["MAE (s), sun at the truth"] < 0.5 * m["MAE (s)"]
+    assert d["Full-dω MAE (l), sun at the truth"] < 0.5 * m["Full-dω MAE (l)"]
+    # the colour cast is still there after the move, and matching the colour removes most of the rest
+    assert d["MAE (s), sun at the truth"] > 0.02
+    assert d["MAE (s), sun at the truth, colour matched"] < 0.5 * d["MAE (s), sun at the truth"]
+    # overcast, or a baseline (sun_at_truth=False): not scored
+    assert np.isnan(diagnostics(estimate, truth, grid, None)["MAE (s), sun at the truth"])
+    assert np.isnan(diagnostics(estimate, truth, grid, SUN, wrong, sun_at_truth=False)["Full-dω MAE (l), sun at the truth"])
+
+
+def test_the_sun_direction_table_lists_estimates_on_clear_cases_only():
+    from f2l.render.evaluate import sun_direction_table
+
+    grid = LatLongGrid(64, 128)
+    truth = _sky_with_lobe(SUN, grid)
+    d = diagnostics(truth, truth, grid, SUN, SUN)
+    base = {"split": "report", "sky_kind": "clear", "Sun-ang (°)": 0.0, "MAE (s)": 0.0, "Full-dω MAE (l)": 0.0, **d}
+    rows = [{**base, "method": "sunsky"}, {**base, "method": "uniform sky"},
+            {**base, "method": "sunsky", "sky_kind": "overcast", "MAE (s)": 9.0}]
+    table = sun_direction_table(rows)
+    assert "uniform sky" not in table
+    line = next(x for x in table.splitlines() if x.startswith("| sunsky |"))
+    assert line.startswith("| sunsky | 1 | 0 | 0 |")

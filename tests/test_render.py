@@ -1,6 +1,7 @@
 """The realistic face renderer (f2l render-faces): map conventions, ground truth, a tiny case."""
 
 import json
+import math
 import subprocess
 import sys
 
@@ -232,7 +233,8 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
                "--out", tmp_path / "report")
     md = (tmp_path / "report" / "eval_real.md").read_text()
     for needed in ("uniform sky", "SH9 oracle", "SH25 oracle", "| sh9 |", "sh9 (true geometry)",
-                   "Reporting part (1 cases", "Tuning part (1 cases", "Breakdowns"):
+                   "Reporting part (1 cases", "Tuning part (1 cases", "Breakdowns",
+                   "What the sun's direction and the light's colour are worth"):
         assert needed in md, needed
     assert md in text
     import csv
@@ -248,6 +250,16 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     for r in est_rows:
         assert 0.0 < float(r["photo residual"]) < 1.0 and 0.0 < float(r["photo residual, truth"]) < 1.0
     assert all(r["photo residual"] == "nan" for r in rows if r["method"] == "uniform sky")
+    # the sun moved onto the true one: scored for the estimates on clear cases, not for baselines
+    from f2l.render.evaluate import BASELINES
+
+    for r in rows:
+        moved = float(r["MAE (s), sun at the truth"])
+        if r["method"] in BASELINES or r["sky_kind"] != "clear":
+            assert math.isnan(moved)
+        else:
+            assert 0.0 <= moved < 1.0, r
+            assert 0.0 <= float(r["Full-dω MAE (l), sun at the truth"]) < 1.0
     assert "Does the photo prefer the truth?" in md
     # a set held out from tuning (`--held-out`): one table over every case, no tuning part
     run("eval-real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out")

@@ -35,6 +35,13 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
   minus the true sun's (clear cases; > 0 = too high). :func:`elevation_bias_table` gives its
   median per sun elevation band and sky source: a mean Sun-ang says how far off the sun is, this
   says whether the estimates lean one way.
+- ``MAE (s), sun at the truth`` / ``MAE (s), sun at the truth, colour matched`` / ``Full-dω MAE
+  (l), sun at the truth`` (clear cases, estimates only): the estimate with its sun moved onto the
+  true one (:func:`sun_moved`: the light in the ``SUN_MOVE_RADIUS_DEG`` cap around the estimate's
+  sun, above the median of the ring around it, put into the true sun's disk texels, per channel),
+  and also colour matched as above. Against the row's MAE (s) and Full-dω MAE they split the error
+  into the sun's direction, the light's colour and the rest (the sky's shape, the sun's share);
+  :func:`sun_direction_table` lists them.
 - ``photo residual`` / ``photo residual, truth``: how well the estimate's probe and the truth each
   explain the face's usable pixels through that record's own transport, skin albedo free per
   channel (:mod:`f2l.render.photo_residual`; NaN for the baselines). :func:`residual_table`
@@ -53,12 +60,13 @@ import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "evaluate_real", "elevation_bias_table", "residual_table",
-           "write_true_geometry_twins", "case_of_source"]
+__all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "sun_moved", "evaluate_real", "elevation_bias_table",
+           "residual_table", "sun_direction_table", "write_true_geometry_twins", "case_of_source"]
 
 BASELINES = ("uniform sky", "SH9 oracle", "SH25 oracle", "truth without its sun disk")
 SUN_RADIUS_DEG = 0.27  # the sun's angular radius
 SUN_RING_DEG = 4.0  # width of the ring whose median radiance replaces the disk
+SUN_MOVE_RADIUS_DEG = 4.0  # the cap around an estimate's sun that sun_moved takes as its sun (sunsky's lobe: ~1°)
 ELEVATION_BANDS_DEG = ((0.0, 15.0), (15.0, 45.0), (45.0, 90.0))
 SPLITS = {"tune": 0, "report": 1}
 
@@ -114,6 +122,31 @@ def without_sun_disk(truth: np.ndarray, grid: LatLongGrid, sun_direction: np.nda
     ring = cap_mask(grid, sun_direction, radius + SUN_RING_DEG) & ~disk & grid.upper_mask
     if disk.any() and ring.any():
         out[disk] = np.median(out[ring], axis=0)
+    return out
+
+
+def sun_moved(probe: np.ndarray, grid: LatLongGrid, from_direction: np.ndarray, to_direction: np.ndarray,
+              radius_deg: float = SUN_MOVE_RADIUS_DEG) -> np.ndarray:
+    """``probe`` with its sun moved from ``from_direction`` onto ``to_direction`` (unit, grid frame).
+
+    The sun is the light, per channel, in the texels within ``radius_deg`` of ``from_direction``
+    above the median of the ``SUN_RING_DEG`` wide ring around them (upper hemisphere); those texels
+    are set to that median, and the sun's energy Σ (l − median) dΩ goes, spread evenly in radiance,
+    into the texels within :func:`sun_disk_radius_deg` of ``to_direction``. The upper hemisphere's
+    energy is kept exactly when both caps lie above the horizon."""
+    from f2l.metrics.lighting import cap_mask
+
+    out = np.array(probe, dtype=np.float64, copy=True)
+    source = cap_mask(grid, from_direction, radius_deg) & grid.upper_mask
+    ring = cap_mask(grid, from_direction, radius_deg + SUN_RING_DEG) & ~source & grid.upper_mask
+    target = cap_mask(grid, to_direction, sun_disk_radius_deg(grid)) & grid.upper_mask
+    if not (source.any() and ring.any() and target.any()):
+        return out
+    fill = np.median(out[ring], axis=0)
+    sun = np.clip(out[source] - fill, 0.0, None)
+    energy = (sun * grid.solid_angles[source][:, None]).sum(0)
+    out[source] = np.minimum(out[source], fill)
+    out[target] += energy / grid.solid_angles[target].sum()
     return out
 
 
@@ -196,7 +229,7 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
         truth = _truth_on(render_dir, case, grid, cache)
         true_sun = None if meta["sky"]["kind"] == "overcast" else np.asarray(meta["sky"]["sun_direction"])
         for name, probe in baseline_probes(truth, grid, true_sun).items():
-            metrics = _pair(evaluate_pair, probe, truth, grid, meta, None)
+            metrics = _pair(evaluate_pair, probe, truth, grid, meta, None, sun_at_truth=False)
             if name == "truth without its sun disk":  # its "sun" is the ring's median: not scored
                 metrics["Sun-ang (°)"] = metrics["sun elevation error (°)"] = math.nan
             metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
@@ -255,23 +288,28 @@ def _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) -
     return out
 
 
-def _pair(evaluate_pair, probe, truth, grid, meta, est_sun):
+def _pair(evaluate_pair, probe, truth, grid, meta, est_sun, sun_at_truth: bool = True):
     sky = meta["sky"]
     overcast = sky["kind"] == "overcast"
     true_sun = None if overcast else np.asarray(sky["sun_direction"])
     metrics = evaluate_pair(probe, truth, grid, overcast=overcast, est_sun_dir=est_sun, gt_sun_dir=true_sun)
-    return {**metrics, **diagnostics(probe, truth, grid, true_sun, est_sun)}
+    return {**metrics, **diagnostics(probe, truth, grid, true_sun, est_sun, sun_at_truth)}
 
 
-DIAGNOSTIC_NAMES = ("colour R/G", "colour B/G", "MAE (s), colour matched", "sun share", "sun elevation error (°)")
+SUN_AT_TRUTH_NAMES = ("MAE (s), sun at the truth", "MAE (s), sun at the truth, colour matched",
+                      "Full-dω MAE (l), sun at the truth")
+DIAGNOSTIC_NAMES = ("colour R/G", "colour B/G", "MAE (s), colour matched", "sun share", "sun elevation error (°)",
+                    *SUN_AT_TRUTH_NAMES)
 
 
 def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None,
-                est_sun_direction: np.ndarray | None = None) -> dict:
+                est_sun_direction: np.ndarray | None = None, sun_at_truth: bool = True) -> dict:
     """The module docstring's diagnostics of one estimate (NaN where undefined). ``sun_direction``:
     the true sun (None when overcast); ``est_sun_direction``: the estimate's own sun direction when
-    it reports one, else the probe's (:func:`f2l.metrics.lighting.sun_direction`, as Sun-ang)."""
-    from f2l.metrics import rendering_metrics
+    it reports one, else the probe's (:func:`f2l.metrics.lighting.sun_direction`, as Sun-ang);
+    ``sun_at_truth``: also score the estimate with its sun moved onto the true one (False for the
+    baselines)."""
+    from f2l.metrics import probe_metrics, rendering_metrics
     from f2l.metrics.lighting import cap_mask
     from f2l.metrics.lighting import sun_direction as probe_sun_direction
 
@@ -292,6 +330,13 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
         cap = (cap_mask(grid, sun_direction) & grid.upper_mask)[..., None]
         out["sun share"] = float((np.asarray(probe, np.float64) * weights * cap).sum() / est_rgb.sum()
                                  - (np.asarray(truth, np.float64) * weights * cap).sum() / true_rgb.sum())
+        if sun_at_truth:
+            moved = sun_moved(probe, grid, est_sun, sun_direction)
+            moved_rgb = (moved * weights).sum((0, 1))
+            out["MAE (s), sun at the truth"] = float(rendering_metrics(moved, truth, grid)["MAE (s)"])
+            out["MAE (s), sun at the truth, colour matched"] = float(
+                rendering_metrics(moved * (true_rgb / moved_rgb)[None, None, :], truth, grid)["MAE (s)"])
+            out["Full-dω MAE (l), sun at the truth"] = float(probe_metrics(moved, truth, grid, overcast=False)["Full-dω MAE (l)"])
     return out
 
 
@@ -314,6 +359,24 @@ def diagnostics_table(rows: list[dict], split: str = "report") -> str:
         lines.append(f"| {method} | {_fmt(median(r['colour R/G'] for r in rs))} | {_fmt(median(r['colour B/G'] for r in rs))}"
                      f" | {_fmt(_mean(float(r['MAE (s)']) for r in rs))} | {_fmt(_mean(float(r['MAE (s), colour matched']) for r in rs))}"
                      f" | {_fmt(_mean(float(r['sun share']) for r in rs if r['sky_kind'] == 'clear'), 2)} |")
+    return "\n".join(lines)
+
+
+def sun_direction_table(rows: list[dict], split: str = "report") -> str:
+    """Markdown: per estimating method, over the clear cases of ``split``, the means of MAE (s) and
+    Full-dω MAE (l) as scored, with the colour matched, with the sun moved onto the true one
+    (:func:`sun_moved`), and both: how much of each error the sun's direction and the light's
+    colour account for."""
+    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and r["method"] not in BASELINES]
+    methods = sorted({r["method"] for r in chosen}, key=lambda m: ("(" in m, m))
+    lines = ["| method | clear cases | mean Sun-ang (°) | MAE (s) | colour matched | sun at the truth | sun at the truth, colour matched"
+             " | Full-dω MAE (l) | Full-dω, sun at the truth |", "|" + "---|" * 9]
+    for method in methods:
+        rs = [r for r in chosen if r["method"] == method]
+        cells = [_fmt(_mean(float(r[k]) for r in rs)) for k in (
+            "Sun-ang (°)", "MAE (s)", "MAE (s), colour matched", "MAE (s), sun at the truth",
+            "MAE (s), sun at the truth, colour matched", "Full-dω MAE (l)", "Full-dω MAE (l), sun at the truth")]
+        lines.append(f"| {method} | {len(rs)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -454,6 +517,8 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
     text += (f"\n\n## Breakdowns ({part})\n\n" + breakdown_table(rows, "report")
             + f"\n\n## Diagnostics ({part}; where the error comes from, not §5.1 metrics)\n\n"
             + diagnostics_table(rows, "report")
+            + f"\n\n## What the sun's direction and the light's colour are worth ({part}, clear cases)\n\n"
+            + sun_direction_table(rows, "report")
             + f"\n\n## Sun elevation bias ({part}; median elevation error / mean Sun-ang (cases))\n\n"
             + elevation_bias_table(rows, "report")
             + "\n\n## Does the photo prefer the truth? (both parts; f2l's Lambertian forward model through each record)\n\n"
