@@ -33,7 +33,8 @@ def test_a_colour_cast_is_measured_and_matching_the_colour_removes_its_error():
     d = diagnostics(cast, truth, GRID, SUN)
     assert d["colour R/G"] == pytest.approx(0.8) and d["colour B/G"] == pytest.approx(1.25)
     assert rendering_metrics(cast, truth, GRID)["MAE (s)"] > 0.02
-    assert d["MAE (s), colour matched"] == pytest.approx(0.0, abs=1e-9)
+    # the gain is applied to the float32 rendering (the scene is linear in the probe): float32 exact
+    assert d["MAE (s), colour matched"] == pytest.approx(0.0, abs=1e-5)
 
 
 def test_a_probe_without_the_sun_has_too_little_energy_in_the_sun_cap():

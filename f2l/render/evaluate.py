@@ -309,8 +309,10 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
     it reports one, else the probe's (:func:`f2l.metrics.lighting.sun_direction`, as Sun-ang);
     ``sun_at_truth``: also score the estimate with its sun moved onto the true one (False for the
     baselines)."""
-    from f2l.metrics import probe_metrics, rendering_metrics
+    from f2l.metrics import probe_metrics
     from f2l.metrics.lighting import cap_mask
+    from f2l.metrics.render_metrics import image_metrics
+    from f2l.metrics.scene import evaluation_scene
     from f2l.metrics.lighting import sun_direction as probe_sun_direction
 
     weights = (grid.solid_angles * grid.upper_mask)[..., None]
@@ -324,8 +326,14 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
         out["sun elevation error (°)"] = _elevation_deg(est_sun) - _elevation_deg(sun_direction)
     out["colour R/G"] = float((est_rgb[0] / est_rgb[1]) / (true_rgb[0] / true_rgb[1]))
     out["colour B/G"] = float((est_rgb[2] / est_rgb[1]) / (true_rgb[2] / true_rgb[1]))
-    matched = np.asarray(probe, np.float64) * (true_rgb / est_rgb)[None, None, :]
-    out["MAE (s), colour matched"] = float(rendering_metrics(matched, truth, grid)["MAE (s)"])
+    # the scene's rendering is linear in the probe: a colour gain scales its channels
+    scene = evaluation_scene(grid)
+    truth_pixels = scene.render_pixels(truth)
+
+    def scene_mae(pixels, gain=np.ones(3)) -> float:
+        return float(image_metrics(pixels.astype(np.float64) * gain, truth_pixels)["MAE (s)"])
+
+    out["MAE (s), colour matched"] = scene_mae(scene.render_pixels(probe), true_rgb / est_rgb)
     if sun_direction is not None:
         cap = (cap_mask(grid, sun_direction) & grid.upper_mask)[..., None]
         out["sun share"] = float((np.asarray(probe, np.float64) * weights * cap).sum() / est_rgb.sum()
@@ -333,9 +341,9 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
         if sun_at_truth:
             moved = sun_moved(probe, grid, est_sun, sun_direction)
             moved_rgb = (moved * weights).sum((0, 1))
-            out["MAE (s), sun at the truth"] = float(rendering_metrics(moved, truth, grid)["MAE (s)"])
-            out["MAE (s), sun at the truth, colour matched"] = float(
-                rendering_metrics(moved * (true_rgb / moved_rgb)[None, None, :], truth, grid)["MAE (s)"])
+            moved_pixels = scene.render_pixels(moved)
+            out["MAE (s), sun at the truth"] = scene_mae(moved_pixels)
+            out["MAE (s), sun at the truth, colour matched"] = scene_mae(moved_pixels, true_rgb / moved_rgb)
             out["Full-dω MAE (l), sun at the truth"] = float(probe_metrics(moved, truth, grid, overcast=False)["Full-dω MAE (l)"])
     return out
 
