@@ -204,10 +204,49 @@ def test_fit_face_frontal_gives_a_fit(grey_photo):
     np.testing.assert_allclose(fit.observed_rgb, grey_photo.linear[0, 0, 0], rtol=1e-5)
     assert fit.crop_display.shape == (64, 64, 3) and (fit.crop_display == GREY).all()
     assert not fit.excluded["clipped"].any() and not fit.excluded["black"].any()
-    # skin, features and border partition the face pixels
-    total = fit.mask.astype(int) + fit.excluded["features"] + fit.excluded["border"]
-    assert (total == 1).all()
+    # skin, features, border and hair partition the face pixels; on a uniform photo the
+    # hairline band has the skin's colour and is skin
+    total = fit.mask.astype(int) + fit.excluded["features"] + fit.excluded["border"] + fit.excluded["hair"]
+    assert (total == 1).all() and not fit.excluded["hair"].any()
     np.testing.assert_allclose(np.linalg.norm(fit.normals, axis=1), 1.0, atol=1e-5)
+
+
+def _band(fit):
+    from f2l.face.regions import skin_regions
+
+    return skin_regions(fit.view.to_working(fit.landmarks), fit.pixel_rc[:, ::-1] + 0.5)["hairline"]
+
+
+def test_fit_face_hairline_band_by_colour(grey_photo):
+    """A dark fringe painted over the forehead's hairline band: "colour" leaves it out as hair
+    and keeps the skin; "exclude" leaves the band out as border, "keep" keeps all of it."""
+    from f2l.face.photo import Photo
+    from f2l.face.regions import skin_regions
+
+    lm = synthetic_landmarks(10.0, -5.0, 3.0)
+    rc = np.stack(np.divmod(np.arange(PHOTO_SIZE**2), PHOTO_SIZE), 1)
+    band = skin_regions(lm, rc[:, ::-1] + 0.5)["hairline"].reshape(PHOTO_SIZE, PHOTO_SIZE)
+    fringe = band & (np.arange(PHOTO_SIZE)[None, :] < lm[10, 0])  # the band's image-left half
+    codes = np.full((PHOTO_SIZE, PHOTO_SIZE, 3), GREY, np.uint8)
+    codes[fringe] = (40, 30, 24)  # dark brown hair
+    photo = Photo(path="fringe.png", kind="png", codes=codes, focal_px=FOCAL, focal_source="default",
+                  orientation=1, exif={})
+    fit = fit_face(photo, lm, 0, OPTIONS)
+    working_band = _band(fit)
+    x = fit.pixel_rc[:, 1] + 0.5
+    x_split = float(fit.view.to_working(lm)[10, 0])
+    left, right = working_band & (x < x_split - 2), working_band & (x > x_split + 2)
+    assert left.sum() > 20 and right.sum() > 20
+    assert fit.excluded["hair"][left].mean() > 0.9 and not fit.mask[left].any()
+    assert fit.mask[right].mean() > 0.95 and not fit.excluded["hair"][right].any()
+    assert not fit.excluded["border"][working_band].any()
+    excluded = fit_face(photo, lm, 0, FitOptions(resolution=64, grid=LatLongGrid(16, 32), hairline="exclude"))
+    assert excluded.excluded["border"][working_band].all() and not excluded.mask[working_band].any()
+    assert not excluded.excluded["hair"].any()
+    kept = fit_face(photo, lm, 0, FitOptions(resolution=64, grid=LatLongGrid(16, 32), hairline="keep"))
+    assert kept.mask[working_band].all()
+    assert kept.mask.sum() == fit.mask.sum() + fit.excluded["hair"].sum()
+    assert excluded.mask.sum() == fit.mask.sum() - fit.mask[working_band].sum()
 
 
 def test_fit_face_rejects_profile(grey_photo):

@@ -24,6 +24,7 @@ def fit_faces_cmd(
     threads: int = typer.Option(2, help="Embree threads for the transport."),
     transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
     body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
+    hairline: str = typer.Option("colour", help="The upper forehead's hairline band: colour (keep its pixels that have the skin's colour; f2l.face.hair), exclude (leave it out) or keep."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
@@ -38,13 +39,16 @@ def fit_faces_cmd(
         raise typer.BadParameter(f"must be one of {', '.join(DEPTH_SOURCES)}", param_hint="--depth")
     if resolution < 32:
         raise typer.BadParameter("must be at least 32", param_hint="--resolution")
-    from f2l.face.fit import TRANSPORT_PIXELS
+    from f2l.face.fit import HAIRLINE_MODES, TRANSPORT_PIXELS
+
+    if hairline not in HAIRLINE_MODES:
+        raise typer.BadParameter(f"must be one of {', '.join(HAIRLINE_MODES)}", param_hint="--hairline")
 
     if transport_pixels not in TRANSPORT_PIXELS:
         raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
                                  param_hint="--transport-pixels")
     options = FitOptions(resolution=resolution, grid=parse_grid(grid), depth_source=depth, threads=threads,
-                         transport_pixels=transport_pixels, body_proxy=body_proxy)
+                         transport_pixels=transport_pixels, body_proxy=body_proxy, hairline=hairline)
     try:
         summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
                             gt_probes=gt_probes, progress=not json_out)

@@ -10,8 +10,9 @@ For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
 3. observed linear RGB: the photo's linear image averaged over each working pixel's footprint
    (``k × k`` bilinear samples, k = ceil(footprint) ≤ 8); a working pixel is clipped if any
    sample is, near-black if all are;
-4. skin mask: inside the face oval and off the features and border (:mod:`f2l.face.regions`),
-   not clipped, not near-black;
+4. skin mask: inside the face oval and off the features and border (:mod:`f2l.face.regions`;
+   the border's upper-forehead band kept where its colour is the skin's, ``hairline``,
+   :mod:`f2l.face.hair`), not clipped, not near-black;
 5. visibility bits on the lighting grid (:func:`f2l.transport.compute_visibility`), traced
    for the pixels the estimator uses (``transport_pixels="mask"``, the default: the skin mask
    and the clipped skin pixels, which sun models read as censored observations) or for every
@@ -33,6 +34,7 @@ from f2l.lighting.grid import LatLongGrid
 
 MAX_SAMPLES_PER_AXIS = 8
 TRANSPORT_PIXELS = ("mask", "all")
+HAIRLINE_MODES = ("colour", "exclude", "keep")
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,10 @@ class FitOptions:
     min_mask_pixels: int = 200
     max_faces: int = 8
     body_proxy: bool = False  # a neck-and-shoulders occluder posed with the head (f2l.face.body)
+    # the upper forehead's hairline band (f2l.face.regions): "colour" keeps its pixels that have
+    # the skin's colour (f2l.face.hair), "exclude" leaves it all out (the default until
+    # 2026-11-27), "keep" keeps it all
+    hairline: str = "colour"
 
     def to_meta(self) -> dict:
         return {"resolution": self.resolution, "margin": self.margin,
@@ -63,7 +69,8 @@ class FitOptions:
                 "lattice_levels": self.lattice_levels,
                 "transport_pixels": self.transport_pixels, "min_face_px": self.min_face_px,
                 "max_yaw_deg": self.max_yaw_deg,
-                "max_outside_fraction": self.max_outside_fraction, "body_proxy": self.body_proxy}
+                "max_outside_fraction": self.max_outside_fraction, "body_proxy": self.body_proxy,
+                "hairline": self.hairline}
 
 
 @dataclass
@@ -226,9 +233,11 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
 
     centres = pixel_rc[:, ::-1] + 0.5
     reg = skin_regions(view.to_working(lm), centres)
-    excluded = {"features": reg["features"], "border": reg["border"],
-                "clipped": clipped & reg["skin"], "black": black & reg["skin"] & ~clipped}
-    mask = reg["skin"] & ~clipped & ~black
+    skin, hair = hairline_skin(reg, rgb, centres, clipped, black, options.hairline)
+    border = reg["border"] if options.hairline == "exclude" else reg["border"] & ~reg["hairline"]
+    excluded = {"features": reg["features"], "border": border, "hair": hair,
+                "clipped": clipped & skin, "black": black & skin & ~clipped}
+    mask = skin & ~clipped & ~black
     if int(mask.sum()) < options.min_mask_pixels:
         return Rejected(face_index, "too_few_pixels", f"face {face_index}: {int(mask.sum())} "
                         f"usable skin pixels < {options.min_mask_pixels}")
@@ -257,6 +266,26 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
         presence=float(presence),
         timings={"geometry_s": round(t1 - t0, 4), "transport_s": round(t2 - t1, 4)},
     )
+
+
+def hairline_skin(reg: dict, rgb: np.ndarray, xy: np.ndarray, clipped: np.ndarray, black: np.ndarray,
+                  mode: str):
+    """(skin, hair) masks over pixels with linear ``rgb`` at image points ``xy``: ``reg``'s skin
+    plus the pixels of its hairline band that ``mode`` keeps ("exclude": none; "keep": all;
+    "colour": those with the colour of the skin below the band,
+    :func:`f2l.face.hair.skin_coloured`), and the band's pixels left out as hair."""
+    band = reg["hairline"]
+    if mode == "exclude":
+        return reg["skin"], np.zeros_like(band)
+    if mode == "keep":
+        keep = band
+    else:
+        from f2l.face.hair import skin_coloured
+
+        keep = np.zeros_like(band)
+        ref = reg["skin"] & ~clipped & ~black
+        keep[band] = skin_coloured(rgb[band], xy[band], rgb[ref], xy[ref], candidate_clipped=clipped[band])
+    return reg["skin"] | keep, band & ~keep
 
 
 def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):

@@ -42,7 +42,7 @@ EMPTY = 48        # grey level of non-face pixels in the normal and visibility p
 TEXT = (235, 235, 235)
 USABLE_COLOUR = (0, 255, 0)
 UNKNOWN_COLOUR = (160, 160, 160)
-REASON_COLOURS = {"features": (255, 0, 0), "border": (255, 150, 0),
+REASON_COLOURS = {"features": (255, 0, 0), "border": (255, 150, 0), "hair": (150, 90, 40),
                   "clipped": (255, 0, 255), "black": (0, 90, 255)}
 WIRE_COLOUR = (0, 255, 0)
 WIRE_ALPHA = 0.4

@@ -7,7 +7,10 @@ skin mask keeps pixels inside the face oval and outside every feature region:
 * features: eyes (dilated to cover lashes and lid shadows), eyebrows, lips, nostrils;
 * border: a band inside the face oval of ``border_fraction`` × the face height, widened to
   ``hair_fraction`` over the upper forehead (where hair falls), because the mesh's silhouette
-  and hairline are the least reliable places of a fit.
+  and hairline are the least reliable places of a fit;
+* hairline: the part of the border that is only the upper-forehead widening (inside the
+  shrunken oval, off the features). It is skin unless hair covers it, and it is where a high sun
+  lights the face: ``f2l.face.hair`` keeps those of its pixels whose colour is the skin's.
 
 Rasterisation is exact point-in-polygon on pixel centres (matplotlib ``Path``).
 """
@@ -82,7 +85,8 @@ def skin_regions(landmarks_xy: np.ndarray, points_xy: np.ndarray, *,
 
     Returns (M,) bool arrays ``features`` (inside an eye, brow, lip or nostril polygon),
     ``border`` (inside the face oval but within the border/hairline band, or outside the oval)
-    and ``skin`` (neither).
+    and ``skin`` (neither); ``hairline`` is the part of ``border`` that only the hairline band
+    excludes (inside the shrunken oval).
     """
     xy = np.asarray(landmarks_xy, dtype=np.float64)[:, :2]
     pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
@@ -92,15 +96,15 @@ def skin_regions(landmarks_xy: np.ndarray, points_xy: np.ndarray, *,
     oval = xy[list(FACE_OVAL)]
     height = float(np.linalg.norm(xy[10] - xy[152]))  # forehead top to chin
     inner = _shrink_polygon(oval, border_fraction * height)
-    border = ~_inside(inner, pts)
+    outside = ~_inside(inner, pts)
     # hairline band: points above the line through the brows' tops, offset upward
     up = xy[10] - xy[152]
     up /= np.linalg.norm(up)
     forehead = xy[10]
     hair_line = forehead - up * hair_fraction * height
-    border |= (pts - hair_line) @ up > 0
-    border &= ~features
-    return {"features": features, "border": border, "skin": ~features & ~border}
+    hairline = ((pts - hair_line) @ up > 0) & ~outside & ~features
+    border = (outside | hairline) & ~features
+    return {"features": features, "border": border, "hairline": hairline, "skin": ~features & ~border}
 
 
 def _shrink_polygon(poly: np.ndarray, distance: float) -> np.ndarray:
