@@ -75,6 +75,9 @@ def test_astronaut_gives_one_valid_record(astronaut_run):
     counts = rec.meta["counts"]
     assert counts["num_pixels"] == rec.num_pixels and counts["num_masked"] == int(rec.mask.sum())
     assert counts["num_features"] > 300 and counts["num_border"] > 500
+    # her fringe covers the forehead's hairline band: the colour test leaves it out as hair
+    # (measured 343 pixels; 38 of the band's pixels are skin and kept)
+    assert counts["num_hair"] > 200 and rec.meta["fit"]["hairline"] == "colour"
     assert abs(rec.meta["pose_deg"]["yaw"]) < 15.0  # she faces the camera (measured +0.4°)
     assert rec.meta["camera"]["focal_source"] == "default"
     # the fitted face lies at a plausible distance in front of the camera, normals toward it
