@@ -145,6 +145,10 @@ def estimate(
         True, "--sun-prior/--no-sun-prior",
         help="Constrain the sun's elevation from the photo's capture time and GPS position (EXIF or "
              "the record's meta 'capture'); sun models only. The heading is unknown: azimuth stays free."),
+    skin_gloss: Optional[float] = typer.Option(
+        None, "--skin-gloss", min=0.0, max=1.0,
+        help="The skin's gloss, an achromatic albedo added to the diffuse one (sun models; default "
+             "0.05, for real skin). 0 reads the skin as Lambertian, as f2l's own synthetic faces are."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
@@ -162,7 +166,7 @@ def estimate(
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
             max_iter=max_iter, progress=not json_out, sun_prior=sun_prior, executor=executor,
-            ray_address=address,
+            ray_address=address, skin_gloss=skin_gloss,
         )
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))

@@ -66,6 +66,7 @@ def test_clipped_channels_are_censored_and_the_others_kept(face_geometry, small_
     bright = (torch.full((1, prob.L_sky, 3), 50.0, dtype=dtype), None, torch.zeros(1, 3, dtype=dtype))
     cost = float(prob.clipped_term(bright, torch.ones(1, 3, dtype=dtype), torch.zeros(1, dtype=dtype)))
     tl = prob.clip_hybrid.apply(bright[0], None)[0]
-    expected = float(((tl - prob.clip_target).abs() * ~prob.clip_bound).sum())
+    seen = prob.apparent(torch.ones(3, dtype=dtype))  # albedo 1 plus the skin's gloss (skin_gloss)
+    expected = float(((seen * tl - prob.clip_target).abs() * ~prob.clip_bound).sum())
     np.testing.assert_allclose(cost, expected, rtol=1e-4)
     assert n <= len(clipped)

@@ -1,6 +1,7 @@
 """The generic inverse-lighting estimator (paper §3.2), shared by every lighting model.
 
-Shading of face pixel p:  s_p = rho ⊙ (T l)_p,  T[p, w] = V(p, w) max(0, <n_p, w>) dOmega_w / pi.
+Shading of face pixel p:  s_p = rho ⊙ (T l)_p,  T[p, w] = V(p, w) max(0, <n_p, w>) dOmega_w / pi;
+for sun models s_p = (rho + g) ⊙ (T l)_p, the skin's gloss g an achromatic albedo (``skin_gloss``).
 For ``domain == "sky"`` models the lower hemisphere is a Lambertian ground of unknown grey albedo
 rho_g lit by the sky: l_gnd = rho_g / pi * E_h,  E_h = sum_{w in sky} max(0, w_y) l(w) dOmega_w, so
 T l = T_sky l_sky + g (rho_g / pi) E_h with g = T_gnd 1 (row sums over the ground texels).
@@ -75,6 +76,7 @@ class _Problem:
         self.linear = basis is not None
         self.hybrid = None
         self.albedo_prior_weight = cfg.albedo_prior_weight
+        self.gloss = float(cfg.skin_gloss) if self.sky and isinstance(model, CompactSun) else 0.0
         if isinstance(model, CompactSun) and cfg.sun_albedo_prior_weight is not None:
             self.albedo_prior_weight = cfg.sun_albedo_prior_weight
         self.clip_hybrid = None
@@ -113,6 +115,11 @@ class _Problem:
             self.U = (U * S).to(dtype)
             self.Vt = V.T.contiguous().to(dtype)
         self.precompute_s = time.perf_counter() - t0
+
+    def apparent(self, albedo):
+        """The skin's apparent albedo, rho + g: its diffuse albedo plus the achromatic gloss
+        (``EstimatorConfig.skin_gloss``; sun models only, else g = 0 and ``albedo`` itself)."""
+        return albedo + self.gloss if self.gloss else albedo
 
     def _init_clipped(self, obs: FaceObservation, cfg: EstimatorConfig, dtype) -> None:
         """Clipped face pixels, channel by channel (``EstimatorConfig.clipped_bounds``, sun models).
@@ -169,7 +176,7 @@ class _Problem:
         self.clip_hybrid.core_texels = self.hybrid.core_texels
         tl = self.clip_hybrid.apply(l_sky, sun)
         tl = tl + self.clip_g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
-        resid = albedo[:, None, :] * tl - self.clip_target[None]
+        resid = self.apparent(albedo)[:, None, :] * tl - self.clip_target[None]
         if spec is not None:
             resid = resid + spec
         resid = torch.where(self.clip_bound[None], torch.clamp(resid, max=0.0), resid)
@@ -213,7 +220,7 @@ class _Problem:
         """Per-start objective (B,) and its data term (B,)."""
         cfg = self.cfg
         tl, rad = self.light_transport(params, ground_albedo)
-        pred = albedo[:, None, :] * tl
+        pred = self.apparent(albedo)[:, None, :] * tl
         k_s = None
         if self.spec is not None:  # the highlight's k_s: the best of a few levels for the data term
             unit = self.specular_term(self.spec, params, torch.ones(len(params), dtype=params.dtype))
@@ -281,8 +288,8 @@ class _Problem:
         for c in sunny + found[-1:]:
             p = shapes[c.shape].copy()
             lum = max(float(c.psi_sky.mean()), float(c.psi_sun.mean()) * 1e-3, 1e-12)
-            p[list(layout.sky_rgb)] = np.maximum(c.psi_sky / albedo, 1e-3 * lum)
-            p[list(layout.sun_rgb)] = np.maximum(c.psi_sun / albedo, 1e-4 * lum)
+            p[list(layout.sky_rgb)] = np.maximum(c.psi_sky / self.apparent(albedo), 1e-3 * lum)
+            p[list(layout.sun_rgb)] = np.maximum(c.psi_sun / self.apparent(albedo), 1e-4 * lum)
             p[layout.elevation] = np.clip(c.elevation_rad, 0.01, 0.5 * np.pi - 0.01)
             p[layout.azimuth] = c.azimuth_rad
             if layout.kappa is not None:
@@ -298,7 +305,7 @@ class _Problem:
             A = A + self.g.numpy()[:, None] * (ground_albedo / np.pi) * self.eB.numpy()[None, :]
         ridge = 1e-8 * np.trace(A.T @ A) / A.shape[1]
         lhs = A.T @ A + ridge * np.eye(A.shape[1])
-        rhs = A.T @ (self.target.numpy() / albedo[None, :])
+        rhs = A.T @ (self.target.numpy() / self.apparent(albedo)[None, :])
         return np.linalg.solve(lhs, rhs).reshape(-1)
 
 
@@ -352,7 +359,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         with torch.no_grad():
             tl, _ = prob.light_transport(torch.as_tensor(theta0, dtype=dtype),
                                          torch.full((len(theta0),), cfg.ground_albedo_init, dtype=dtype))
-            pred = (torch.as_tensor(rho0, dtype=dtype)[:, None, :] * tl).mean((1, 2)).numpy()
+            pred = (prob.apparent(torch.as_tensor(rho0, dtype=dtype))[:, None, :] * tl).mean((1, 2)).numpy()
         del tl
         scale = prob.target_scale / np.maximum(pred, 1e-12)
         theta0 = _scale_intensities(model, theta0, scale, lo, hi)
@@ -364,7 +371,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     if prob.hybrid is not None:
         weight_idx = list(model.sun_layout.sky_rgb) + list(model.sun_layout.sun_rgb)
         theta0 = theta0.copy()
-        theta0[:, weight_idx] *= np.tile(rho0, 2)
+        theta0[:, weight_idx] *= np.tile(prob.apparent(rho0), 2)
     x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
     x_rho = torch.tensor(np.log(rho0) - np.log1p(-rho0), dtype=dtype)
     g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
@@ -375,8 +382,9 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         params = box.to_params(x_theta)
         rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(x_theta), 3)
         if weight_idx is not None:
-            params = torch.cat([params[:, :6] / rho.repeat(1, 2), params[:, 6:]], 1) if weight_idx == list(range(6)) \
-                else params.index_copy(1, torch.as_tensor(weight_idx), params[:, weight_idx] / rho.repeat(1, 2))
+            seen = prob.apparent(rho).repeat(1, 2)
+            params = torch.cat([params[:, :6] / seen, params[:, 6:]], 1) if weight_idx == list(range(6)) \
+                else params.index_copy(1, torch.as_tensor(weight_idx), params[:, weight_idx] / seen)
         return params, rho, torch.sigmoid(x_gnd)
 
     t_fit = time.perf_counter()

@@ -11,6 +11,7 @@ skipped, and a killed run keeps what it finished (:mod:`f2l.estimate.resume`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -51,9 +52,11 @@ def run_estimates(
     executor: str = "local",
     ray_address: str | None = None,
     rows_per_part: int = 64,
+    skin_gloss: float | None = None,
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
-    ``workers`` None: :func:`default_workers`."""
+    ``workers`` None: :func:`default_workers`; ``skin_gloss`` None: EstimatorConfig's (ignored
+    with ``config``)."""
     from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records
     from f2l.models.registry import load_model
@@ -66,6 +69,8 @@ def run_estimates(
     workers = default_workers(threads) if workers is None else max(1, int(workers))
     cfg = config or EstimatorConfig(threads=threads, max_pixels=max_pixels, max_iter=max_iter,
                                     sun_prior_from_capture=sun_prior)
+    if config is None and skin_gloss is not None:
+        cfg = dataclasses.replace(cfg, skin_gloss=float(skin_gloss))
     hashes = {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
         hashes[name] = config_hash(name, load_model(name, LatLongGrid(8, 16)).version, cfg)
