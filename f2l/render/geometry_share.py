@@ -29,11 +29,13 @@ Full-dω MAE (l). It attributes the geometry gap to shading normals and to cast 
 row is the floor the lighting model and its priors set: what remains when the photo holds nothing
 the estimator leaves out (no specular, interreflection, skin texture, clipping or noise); the gap
 between it and "true" is the renderer's physics. The row with gloss puts the first of those back
-on its own.
+on its own. The Lambertian ideal photo is read as Lambertian (``skin_gloss = 0``, the model that
+made it); every other row, glossy, with the estimator's default skin gloss.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -109,6 +111,7 @@ def geometry_share(eval_dir: Path, models: list[str], threads: int = 2, progress
     cache: dict = {}
     rows = []
     cfg = EstimatorConfig(threads=threads, sun_prior_from_capture=False)
+    lambertian = dataclasses.replace(cfg, skin_gloss=0.0)  # for f2l's own Lambertian render
     for fitted in iter_records(eval_dir / "fitted"):
         if not getattr(fitted, "ok", False):
             continue
@@ -128,7 +131,7 @@ def geometry_share(eval_dir: Path, models: list[str], threads: int = 2, progress
             for variant, (normals, bits, photo) in inputs.items():
                 obs = FaceObservation(normals, photo, twin.mask, bits, grid, face_id=fitted.face_id)
                 try:
-                    res = estimate(obs, model, cfg)
+                    res = estimate(obs, model, lambertian if variant == "true, ideal photo" else cfg)
                 except EstimationError:
                     continue
                 m = evaluate_pair(res.probe.astype(np.float64), truth, grid, overcast=overcast,
