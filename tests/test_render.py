@@ -262,10 +262,19 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
             assert 0.0 <= float(r["Full-dω MAE (l), sun at the truth"]) < 1.0
     assert "Does the photo prefer the truth?" in md
     # a set held out from tuning (`--held-out`): one table over every case, no tuning part
-    run("eval-real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out")
+    # ... with sunsky fitted to each true probe (its family's oracle), cached for the next run
+    run("eval-real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out", "--fit-truth", "sunsky")
     held = (tmp_path / "held_out" / "eval_real.md").read_text()
     assert "All cases, held out from tuning (2 cases" in held and "Tuning part" not in held
     assert "Breakdowns (all cases)" in held
+    assert "| sunsky fitted to the truth | 2 |" in held and "| sunsky fitted to the truth, sun 5° off | 2 |" in held
+    assert len(list((tmp_path / "held_out" / "truth_fits" / "sunsky").glob("*.exr"))) == 2
+    with open(tmp_path / "held_out" / "eval_real_rows.csv") as fh:
+        fits = [r for r in csv.DictReader(fh) if r["method"] == "sunsky fitted to the truth"]
+    assert len(fits) == 2 and all(0.0 <= float(r["MAE (s)"]) < 0.5 and float(r["runtime_s"]) > 0 for r in fits)
+    proc = subprocess.run([*f2l, "eval-real", str(pbr), "--est", str(tmp_path / "est"), "--out", str(tmp_path / "x"),
+                           "--fit-truth", "no-such-model"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "--fit-truth no-such-model" in proc.stderr
     # the geometry share on the same folder layout as make eval-real: seven variants per face; the
     # "true" variant is the twin record itself, so it scores what `estimate` on the twins scored;
     # the ideal photo (f2l's own render of the truth) is scored like the others

@@ -19,6 +19,7 @@ lets the worst start slow the others), otherwise from ``initial_points()``.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -32,6 +33,8 @@ __all__ = ["ProbeFit", "ProbeFitError", "fit_probe", "probe_fit_loss"]
 
 START_MARGIN = 1e-3  # starts sit at least this fraction of a bounded range inside it (a sigmoid
 #                     at its 1e-6 clip has no gradient left: a kappa start at 8192 could never move)
+LOG_INTENSITY_LIMIT = 80.0  # intensities are fitted as log(value / s); |log| is clamped here (e^80 ≈ 6e34 × the
+#                             probe's mean luminance, far past any HDR range) so that exp() cannot overflow
 RESTARTS = 3  # fresh L-BFGS memories after a run stops early (a flat line-search step)
 
 EPS = 1e-6
@@ -136,11 +139,17 @@ def fit_probe(probe: np.ndarray, model, *, max_iter: int = 150, tolerance: float
 
     def to_params(x_: torch.Tensor, factor: float = 1.0) -> torch.Tensor:
         """Parameters for the normalised probe (factor 1) or the original one (factor s)."""
-        safe = torch.where(log_mask, x_, torch.zeros_like(x_))  # no exp() of other columns
+        safe = torch.where(log_mask, x_, torch.zeros_like(x_)).clamp(-LOG_INTENSITY_LIMIT, LOG_INTENSITY_LIMIT)
         return torch.where(log_mask, torch.exp(safe) * factor, box.to_params(x_))
 
     def objective(x_: torch.Tensor) -> torch.Tensor:
-        return probe_fit_loss(model.radiance(to_params(x_)), target, weights, 1.0)
+        # A line search can step to where a parameter is not finite (a NaN direction after an
+        # overflow): the loss there is +inf, and the model never sees such parameters.
+        finite = torch.isfinite(x_)
+        loss = probe_fit_loss(model.radiance(to_params(torch.where(finite, x_, torch.zeros_like(x_)))),
+                              target, weights, 1.0)
+        ok = finite.all(dim=-1) & torch.isfinite(loss)
+        return torch.where(ok, loss, torch.full_like(loss, math.inf))
 
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
@@ -180,12 +189,14 @@ def minimise_restarted(objective, x0: torch.Tensor, max_iter: int, tolerance: fl
     is relative to a loss of order 1. torch's L-BFGS also stops when a line search returns a tiny
     step (a flat step, or a curvature memory gone stale); such an early stop is rounding-dependent,
     so the run restarts with a fresh memory, up to ``RESTARTS`` times, until a restart no longer
-    lowers the loss by more than ``tolerance`` or the ``max_iter`` budget is spent.
+    lowers the loss by more than ``tolerance`` or the ``max_iter`` budget is spent. A run that
+    ends at a non-finite loss (it diverged) is undone: the last finite point is returned.
     """
     x = x0.detach().clone().requires_grad_(True)
     used = 0
     with torch.no_grad():
         previous = float(objective(x).sum())
+    kept = x.detach().clone()  # the last point with a finite loss: a run that diverges returns to it
     for _ in range(1 + RESTARTS):
         if used >= max_iter:
             break
@@ -203,7 +214,10 @@ def minimise_restarted(objective, x0: torch.Tensor, max_iter: int, tolerance: fl
         used += max(1, int(optimiser.state[optimiser._params[0]].get("n_iter", 0)))
         with torch.no_grad():
             loss = float(objective(x).sum())
+        if not math.isfinite(loss):
+            break  # the run diverged (e.g. a line search into an overflow): keep the last finite point
+        kept = x.detach().clone()
         if not loss < previous - tolerance * max(1.0, abs(previous)):
             break  # this run made no progress: a stationary point, not a stale memory
         previous = loss
-    return x.detach(), used
+    return kept, used

@@ -88,6 +88,7 @@ def eval_real_cmd(
     est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
     out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
     held_out: bool = typer.Option(False, "--held-out", help="No tuning part: every case reports (a set no default was chosen on, e.g. `render-faces --maps held-out`)."),
+    fit_truth: list[str] = typer.Option([], "--fit-truth", help="Also fit this model to each true probe, no face (its family's oracle; repeatable; cached in OUT/truth_fits)."),
 ) -> None:
     """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
     from f2l.render.evaluate import evaluate_real, write_report
@@ -99,7 +100,13 @@ def eval_real_cmd(
     for label, path in runs.items():
         if not (path / "estimates.parquet").is_file():
             fail(f"{path}: no estimates.parquet (run `f2l estimate` first)")
-    rows = evaluate_real(render, runs)
+    from f2l.models.registry import discover
+
+    installed = discover()
+    for name in fit_truth:
+        if name not in installed or not installed[name].ok:
+            fail(f"--fit-truth {name}: no such lighting model installed (`f2l models` lists them)")
+    rows = evaluate_real(render, runs, fit_truth=tuple(dict.fromkeys(fit_truth)), fit_cache=out / "truth_fits")
     if not rows:
         fail(f"{render}: no rendered case found (meta/*.json)")
     if held_out:

@@ -16,7 +16,11 @@ Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid 
 - ``truth without its sun disk``: the truth with the texels that hold the sun's disk (centres within
   :func:`sun_disk_radius_deg` of the true sun) replaced by the median of the ring around them (clear cases; overcast ones keep the truth):
   an estimate that is exact everywhere except the sun's own disk. Its Full-dω MAE (l) is the floor
-  for every estimate whose sun misses the disk; its Sun-ang is not scored (NaN).
+  for every estimate whose sun misses the disk; its Sun-ang is not scored (NaN);
+- ``<model> fitted to the truth`` and ``<model> fitted to the truth, sun 5° off`` (``fit_truth``):
+  the model fitted to the true probe itself, no face (:mod:`f2l.render.truth_fit`), as fitted and
+  with its sun moved 5°: what the model's family reaches under the probe fit's loss, and what a
+  sun as close as a good face estimate costs it.
 
 The cases are split by index: even = the tuning part (look at it freely while changing f2l),
 odd = the reporting part (the README's figures). Breakdowns (reporting part): by sky source, by
@@ -69,6 +73,23 @@ SUN_RING_DEG = 4.0  # width of the ring whose median radiance replaces the disk
 SUN_MOVE_RADIUS_DEG = 4.0  # the cap around an estimate's sun that sun_moved takes as its sun (sunsky's lobe: ~1°)
 ELEVATION_BANDS_DEG = ((0.0, 15.0), (15.0, 45.0), (45.0, 90.0))
 SPLITS = {"tune": 0, "report": 1}
+
+
+def _is_reference(method: str) -> bool:
+    """A baseline or a model fitted to the truth (no face): listed first, left out of the tables
+    of the estimates' sun."""
+    from f2l.render.truth_fit import is_truth_fit
+
+    return method in BASELINES or is_truth_fit(method)
+
+
+def _order(method: str) -> tuple:
+    """Table order: the baselines, the models fitted to the truth, the fitted-mesh estimates, the
+    labelled runs."""
+    from f2l.render.truth_fit import is_truth_fit
+
+    rank = 0 if method in BASELINES else 1 if is_truth_fit(method) else 2
+    return (rank, "(" in method, method)
 
 
 def case_of_source(source_path: str) -> str:
@@ -202,11 +223,14 @@ def _truth_on(render_dir: Path, case: str, grid: LatLongGrid, cache: dict) -> np
 
 
 def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = LatLongGrid(64, 128),
-                  photo_residuals: bool = True) -> list[dict]:
+                  photo_residuals: bool = True, fit_truth: tuple[str, ...] = (),
+                  fit_cache: Path | None = None) -> list[dict]:
     """One row per (method, case): the seven metrics, run time, split and breakdown keys.
 
     ``runs`` maps a label (e.g. "fitted", "true geometry") to an ``f2l estimate`` output folder;
     its rows are named "<model>" for the label "fitted" and "<model> (<label>)" otherwise.
+    ``fit_truth`` names models to fit to each true probe as well (:mod:`f2l.render.truth_fit`,
+    cached in ``fit_cache``); a probe a model cannot fit is reported on stderr and left out.
     """
     import pyarrow.parquet as pq
 
@@ -234,6 +258,9 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
                 metrics["Sun-ang (°)"] = metrics["sun elevation error (°)"] = math.nan
             metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
             rows.append(row(name, case, metrics, 0.0))
+        for model_name in fit_truth:
+            rows.extend(row(name, case, metrics, runtime_s)
+                        for name, metrics, runtime_s in _truth_fit_rows(truth, model_name, grid, case, meta, fit_cache))
     for label, est_dir in runs.items():
         est_dir = Path(est_dir)
         run = json.loads((est_dir / "run.json").read_text())
@@ -259,6 +286,32 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
 
 
 RESIDUAL_NAMES = ("photo residual", "photo residual, truth")
+
+
+def _truth_fit_rows(truth, model_name, grid, case, meta, fit_cache):
+    """(method, metrics, run time) of ``model_name`` fitted to ``truth``, as fitted and with its
+    sun moved by MOVED_SUN_DEG (:mod:`f2l.render.truth_fit`); none when the fit fails."""
+    import sys
+
+    from f2l.estimate.probe_fit import ProbeFitError
+    from f2l.metrics import evaluate_pair
+    from f2l.render.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, moved_direction, truth_fit
+
+    try:
+        probe, sun, runtime_s = truth_fit(truth, model_name, grid, case, fit_cache)
+    except ProbeFitError as exc:
+        print(f"{case}: {model_name} could not be fitted to the true probe: {exc}", file=sys.stderr)
+        return []
+    out = []
+    for name, moved in ((model_name + FIT_SUFFIX, False), (model_name + MOVED_SUFFIX, True)):
+        p, s = probe, sun
+        if moved and sun is not None:
+            s = moved_direction(sun, MOVED_SUN_DEG, case)
+            p = sun_moved(probe, grid, sun, s)
+        metrics = _pair(evaluate_pair, p, truth, grid, meta, s)
+        metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
+        out.append((name, metrics, runtime_s))
+    return out
 
 
 def _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) -> dict:
@@ -362,7 +415,7 @@ def diagnostics_table(rows: list[dict], split: str = "report") -> str:
 
     lines = ["| method | colour R/G (median) | colour B/G (median) | MAE (s) | MAE (s), colour matched | sun share − truth (mean) |",
              "|---|---|---|---|---|---|"]
-    for method in sorted(by, key=lambda m: (m not in BASELINES, "(" in m, m)):
+    for method in sorted(by, key=_order):
         rs = by[method]
         lines.append(f"| {method} | {_fmt(median(r['colour R/G'] for r in rs))} | {_fmt(median(r['colour B/G'] for r in rs))}"
                      f" | {_fmt(_mean(float(r['MAE (s)']) for r in rs))} | {_fmt(_mean(float(r['MAE (s), colour matched']) for r in rs))}"
@@ -375,7 +428,7 @@ def sun_direction_table(rows: list[dict], split: str = "report") -> str:
     Full-dω MAE (l) as scored, with the colour matched, with the sun moved onto the true one
     (:func:`sun_moved`), and both: how much of each error the sun's direction and the light's
     colour account for."""
-    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and r["method"] not in BASELINES]
+    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and not _is_reference(r["method"])]
     methods = sorted({r["method"] for r in chosen}, key=lambda m: ("(" in m, m))
     lines = ["| method | clear cases | mean Sun-ang (°) | MAE (s) | colour matched | sun at the truth | sun at the truth, colour matched"
              " | Full-dω MAE (l) | Full-dω, sun at the truth |", "|" + "---|" * 9]
@@ -400,7 +453,7 @@ def elevation_bias_table(rows: list[dict], split: str = "report") -> str:
     """Markdown: per method (baselines left out), the median ``sun elevation error (°)`` and the
     mean Sun-ang in each sun elevation band, for the Hosek–Wilkie skies and the HDR maps apart
     (clear cases of ``split``). Cells: "median elevation error / mean Sun-ang (cases)"."""
-    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and r["method"] not in BASELINES]
+    chosen = [r for r in rows if r["split"] == split and r["sky_kind"] == "clear" and not _is_reference(r["method"])]
     methods = sorted({r["method"] for r in chosen}, key=lambda m: ("(" in m, m))
     columns = [(kind, band) for kind in ("Hosek–Wilkie", "HDR maps") for band in ELEVATION_BIAS_BANDS_DEG]
     lines = ["| method | " + " | ".join(f"{kind}, sun {lo:.0f}–{hi:.0f}°" for kind, (lo, hi) in columns) + " |",
@@ -463,7 +516,7 @@ def summary_table(rows: list[dict], split: str | None = "report") -> str:
         by[r["method"]].append(r)
     header = ["method", "cases", *METRIC_NAMES, "median Sun-ang (°)", "s / face"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    order = sorted(by, key=lambda m: (m not in BASELINES, "(" in m, m))
+    order = sorted(by, key=_order)
     for method in order:
         rs = by[method]
         vals = [_fmt(_mean(r[k] for r in rs)) for k in METRIC_NAMES]
@@ -489,7 +542,7 @@ def breakdown_table(rows: list[dict], split: str = "report") -> str:
             keys.append("overcast")
         for k in dict.fromkeys(keys):
             groups.setdefault(k, []).append(r)
-    methods = sorted({r["method"] for r in chosen}, key=lambda m: (m not in BASELINES, "(" in m, m))
+    methods = sorted({r["method"] for r in chosen}, key=_order)
     lines = ["| group | cases | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 2),
              "| *(each cell: mean Sun-ang ° / MAE (s) / Full-dω MAE (l))* | | " + " | ".join("" for _ in methods) + " |"]
     for key in sorted(groups):
