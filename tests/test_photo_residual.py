@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from f2l.lighting.grid import LatLongGrid, rotate_y
-from f2l.render.evaluate import residual_table
+from f2l.render.eval_report import residual_table
 from f2l.render.photo_residual import IDEAL_PEAK, PhotoResidual, best_scale_l1, ideal_photo, photo_residual
 from f2l.synth.render import make_synthetic_set
 

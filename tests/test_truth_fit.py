@@ -14,7 +14,8 @@ import torch
 from f2l.estimate.probe_fit import minimise_restarted
 from f2l.lighting.grid import LatLongGrid
 from f2l.metrics.lighting import angle_deg
-from f2l.render.evaluate import _truth_fit_rows, summary_table
+from f2l.render.eval_report import summary_table
+from f2l.render.evaluate import _truth_fit_rows
 from f2l.render.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, is_truth_fit, moved_direction, truth_fit
 from f2l_builtin_models.sunsky import SunSky
 

@@ -91,7 +91,8 @@ def eval_real_cmd(
     fit_truth: list[str] = typer.Option([], "--fit-truth", help="Also fit this model to each true probe, no face (its family's oracle; repeatable; cached in OUT/truth_fits)."),
 ) -> None:
     """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
-    from f2l.render.evaluate import evaluate_real, write_report
+    from f2l.render.eval_report import write_report
+    from f2l.render.evaluate import evaluate_real
 
     runs = {}
     for item in est:
@@ -141,7 +142,7 @@ def eval_real_ablations_cmd(
 ) -> None:
     """How much of each model's error each ablation (no specular, direct light only, canonical head, no clipping) removes."""
     from f2l.io.atomic import write_text_atomic
-    from f2l.render.evaluate import ablation_table
+    from f2l.render.eval_report import ablation_table
 
     if not (eval_dir / "eval_real_rows.csv").is_file():
         fail(f"{eval_dir}: no eval_real_rows.csv (run `make eval-real` first)")
