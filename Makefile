@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -145,6 +145,13 @@ eval-real-heldout: $(STAMP)
 # build/eval_real/geometry_share.md. Needs `make eval-real` first (31 min on 2 cores).
 eval-real-geometry: $(STAMP)
 	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
+
+# The search's share of the sun error, or the objective's (README "Does the photo prefer the
+# truth?"): sunsky on every clear face, fitted mesh and true one, from its own starts and from a
+# start at the true sun (with and without the light prior), the elevation profile off; table in
+# build/eval_real/search_share.md. Needs `make eval-real` first (8 min on 2 cores).
+eval-real-search: $(STAMP)
+	$(BIN)/f2l eval-real-search $(EVAL_REAL) -m sunsky
 
 # Ablations (README "Where the error comes from"): the first EVAL_ABL_N cases of eval-real
 # re-rendered with one thing taken away each (same people, poses, cameras and skies), then the same

@@ -294,6 +294,22 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
             assert abs(r["MAE (s)"] - twin_rows[r["case"]]) < 1e-3 * max(1.0, twin_rows[r["case"]])
     ideal = [r for r in share_rows if r["variant"] == "true, ideal photo"]
     assert len(ideal) == 2 and all(0.0 <= r["MAE (s)"] < 1.0 for r in ideal)
+    # the search's share: each clear face fitted from its own starts and from the true sun, on both
+    # meshes; the own-start fit has the elevation profile off, so it is not the estimate scored above
+    from f2l.render.search_share import GEOMETRIES
+    from f2l.render.search_share import VARIANTS as SEARCH_VARIANTS
+
+    clear = {r["case"] for r in rows if r["sky_kind"] == "clear"}
+    assert len(clear) == 2  # seed 0's first two cases (esplanade)
+    table = run("eval-real-search", eval_dir, "-m", "sunsky", "--threads", "1")
+    assert all(f"| sunsky | {g} | {v} |" in table for g in GEOMETRIES for v in SEARCH_VARIANTS)
+    search_rows = json.loads((eval_dir / "search_share_rows.json").read_text())
+    assert len(search_rows) == len(clear) * len(GEOMETRIES) * len(SEARCH_VARIANTS)
+    for r in search_rows:
+        assert r["case"] in clear and np.isfinite(r["objective"]) and 0.0 <= r["Sun-ang (°)"] <= 180.0
+    proc = subprocess.run([*f2l, "eval-real-search", str(eval_dir), "-m", "sh9"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode != 0 and "not a compact-sun model" in proc.stderr
 
 
 def test_render_skies_writes_a_hosek_wilkie_corpus_that_build_prior_reads(tmp_path):

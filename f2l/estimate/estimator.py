@@ -309,15 +309,34 @@ class _Problem:
         return np.linalg.solve(lhs, rhs).reshape(-1)
 
 
-def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig | None = None) -> EstimateResult:
-    """Estimate lighting, albedo and ground albedo for one face with ``model``."""
+def _given_sun_starts(template: np.ndarray, directions: np.ndarray, layout) -> np.ndarray:
+    """(k, P) copies of ``template`` with the sun moved to each of ``directions`` (k, 3) (unit,
+    +Y up, azimuth 0 = -Z: the grid's convention), elevation kept inside (0, 90°) like the search's."""
+    if directions.ndim != 2 or directions.shape[1] != 3 or not np.isfinite(directions).all() or len(directions) == 0:
+        raise ValueError(f"sun_starts must be a non-empty (k, 3) array of finite directions, got shape {directions.shape}")
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    starts = np.repeat(template[None], len(d), axis=0)
+    starts[:, layout.elevation] = np.clip(np.arcsin(np.clip(d[:, 1], -1, 1)), 0.01, 0.5 * np.pi - 0.01)
+    starts[:, layout.azimuth] = np.arctan2(d[:, 0], -d[:, 2])
+    return starts
+
+
+def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig | None = None,
+             sun_starts: np.ndarray | None = None) -> EstimateResult:
+    """Estimate lighting, albedo and ground albedo for one face with ``model``.
+
+    ``sun_starts`` ((k, 3) unit directions in the probe's frame; ``compact-sun`` models only): start
+    the fit from these suns in place of the global search's candidates, each with the weights of
+    the search's best one. A diagnostic (``f2l eval-real-search`` starts fits at the true sun)."""
     cfg = config or EstimatorConfig()
-    if isinstance(model, LatentSky):  # decoded latent skies: batched start search (f2l.estimate.latent)
-        return estimate_latent_sky(obs, model, cfg)
+    if isinstance(model, LatentSky) and sun_starts is None:  # decoded latent skies: batched start search
+        return estimate_latent_sky(obs, model, cfg)  # (f2l.estimate.latent)
     t_start = time.perf_counter()
     dtype = torch.float64
     torch.set_num_threads(max(1, cfg.threads))
     prob = _Problem(obs, model, cfg, dtype)
+    if sun_starts is not None and prob.hybrid is None:
+        raise ValueError(f"sun_starts needs a compact-sun model over the sky; {model.name!r} is not one")
     # The fit's tensors are small (N x 3 per start): one intra-op thread is 10-50x faster than two
     # threads that spin against each other and against BLAS (measured; see docs/performance.md).
     torch.set_num_threads(1)
@@ -342,6 +361,8 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     t_search = time.perf_counter()
     if prob.hybrid is not None:
         initial = prob.sun_search_starts(albedo_starts[0], cfg.ground_albedo_init)
+        if sun_starts is not None:
+            initial = _given_sun_starts(initial[0], np.atleast_2d(np.asarray(sun_starts, np.float64)), model.sun_layout)
         # the azimuth is periodic: optimise it unbounded (a sigmoid would pin suns behind the head)
         lo, hi = lo.copy(), hi.copy()
         lo[model.sun_layout.azimuth], hi[model.sun_layout.azimuth] = -np.inf, np.inf

@@ -1,5 +1,6 @@
 """CLI layer of the independent evaluation renders (registered on the main app by :mod:`f2l.cli`):
-``render-faces``, ``render-skies``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``, ``eval-real-ablations``."""
+``render-faces``, ``render-skies``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``,
+``eval-real-search``, ``eval-real-ablations``."""
 
 from __future__ import annotations
 
@@ -134,6 +135,29 @@ def eval_real_geometry_cmd(
     if not rows:
         fail(f"{eval_dir}: no fitted face with a true-geometry twin")
     typer.echo(write_share(rows, out or eval_dir).read_text())
+
+
+def eval_real_search_cmd(
+    eval_dir: Path = typer.Argument(..., help="The `make eval-real` folder (pbr/, fitted/, true_geometry/)."),
+    model: list[str] = typer.Option(["sunsky"], "--model", "-m", help="Compact-sun models (repeatable)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where search_share.md goes (default: EVAL_DIR)."),
+    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N clear cases."),
+    threads: int = typer.Option(2, help="Threads."),
+) -> None:
+    """The search's share of the sun error or the objective's: each fit run again from a start at the
+    true sun, with and without the light prior (f2l.render.search_share)."""
+    from f2l.render.search_share import search_share, write_search
+
+    for sub in ("pbr", "fitted", "true_geometry"):
+        if not (eval_dir / sub).is_dir():
+            fail(f"{eval_dir / sub}: missing (run `make eval-real` first)")
+    try:
+        rows = search_share(eval_dir, list(model), threads=threads, limit=limit)
+    except ValueError as exc:
+        fail(str(exc))
+    if not rows:
+        fail(f"{eval_dir}: no clear case with a fitted face and a true-geometry twin")
+    typer.echo(write_search(rows, out or eval_dir).read_text())
 
 
 def eval_real_ablations_cmd(

@@ -236,6 +236,22 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
 ABLATION_METRICS = ("Sun-ang (°)", "MAE (s)", "Full-dω MAE (l)")
 
 
+def write_table(rows: list[dict], out_dir: Path, stem: str, heading: str, table: str) -> Path:
+    """Write ``OUT/<stem>.md`` (``## heading`` and the Markdown ``table``) and the rows beside it
+    as ``OUT/<stem>_rows.json`` (atomic writes); returns the Markdown's path. For the diagnostics
+    that re-estimate every face (``eval-real-geometry``, ``eval-real-search``)."""
+    import json
+
+    from f2l.io.atomic import write_text_atomic
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{stem}.md"
+    write_text_atomic(path, f"## {heading}\n\n{table}\n")
+    write_text_atomic(out_dir / f"{stem}_rows.json", json.dumps(rows, indent=1))
+    return path
+
+
 def _read_rows(path: Path) -> list[dict]:
     import csv
 

@@ -36,7 +36,6 @@ made it); every other row, glossy, with the estimator's default skin gloss.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -167,11 +166,7 @@ def share_table(rows: list[dict]) -> str:
 
 
 def write_share(rows: list[dict], out_dir: Path) -> Path:
-    from f2l.io.atomic import write_text_atomic
+    from f2l.render.eval_report import write_table
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "geometry_share.md"
-    write_text_atomic(path, "## The face fit's share: normals or occluders, and an ideal photo\n\n" + share_table(rows) + "\n")
-    write_text_atomic(out_dir / "geometry_share_rows.json", json.dumps(rows, indent=1))
-    return path
+    return write_table(rows, out_dir, "geometry_share", "The face fit's share: normals or occluders, and an ideal photo",
+                       share_table(rows))
