@@ -147,9 +147,10 @@ eval-real-geometry: $(STAMP)
 	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
 
 # The search's share of the sun error, or the objective's (README "Does the photo prefer the
-# truth?"): sunsky on every clear face, fitted mesh and true one, from its own starts and from a
-# start at the true sun (with and without the light prior), the elevation profile off; table in
-# build/eval_real/search_share.md. Needs `make eval-real` first (8 min on 2 cores).
+# truth?"): sunsky on every clear face, on the fitted mesh, the true one and an ideal photo (f2l's
+# own render of the truth on the true mesh), from its own starts and from a start at the true sun
+# (with and without the light prior), the elevation profile off; table in
+# build/eval_real/search_share.md. Needs `make eval-real` first (12 min on 2 cores).
 eval-real-search: $(STAMP)
 	$(BIN)/f2l eval-real-search $(EVAL_REAL) -m sunsky
 

@@ -3,9 +3,12 @@
 A compact-sun fit can miss the true sun for two reasons: its starts never reach the true sun's
 basin (the search's fault), or its objective (data term and priors) is lower somewhere else (the
 forward model's or the priors' fault, which no search fixes). For each clear case of a
-``make eval-real`` folder, on the fitted mesh and on the true one (``f2l twin-geometry``), each
-model is fitted three ways, all without the elevation profile so that the objective compared is one
-fit's (``EstimatorConfig.sun_elevation_profile_deg = ()``):
+``make eval-real`` folder, on the fitted mesh, on the true one (``f2l twin-geometry``) and on an
+ideal photo on the true mesh (f2l's own Lambertian render of the true probe,
+:func:`f2l.render.photo_residual.ideal_photo`, read without the skin's gloss: what is left there
+is the lighting model's family and its priors), each model is fitted three ways, all without the
+elevation profile so that the objective compared is one fit's
+(``EstimatorConfig.sun_elevation_profile_deg = ()``):
 
 =========================================  =============================================================
 variant                                    starts
@@ -31,15 +34,18 @@ from pathlib import Path
 import numpy as np
 
 VARIANTS = ("own starts", "started at the true sun", "started at the true sun, no light prior")
-GEOMETRIES = ("fitted", "true")
+GEOMETRIES = ("fitted", "true", "true, ideal photo")
 FAR_DEG = 15.0
 LOWER_REL = 1e-3  # an objective counts as lower when below the other's by this fraction
 
 
-def _configs(threads: int) -> dict:
+def _configs(threads: int, geometry: str) -> dict:
+    """{variant: EstimatorConfig}; the ideal photo is Lambertian and is read so (``skin_gloss = 0``)."""
     from f2l.estimate import EstimatorConfig
 
     base = EstimatorConfig(threads=threads, sun_prior_from_capture=False, sun_elevation_profile_deg=())
+    if geometry == "true, ideal photo":
+        base = dataclasses.replace(base, skin_gloss=0.0)
     return {"own starts": base, "started at the true sun": base,
             "started at the true sun, no light prior": dataclasses.replace(base, light_prior_weight=0.0)}
 
@@ -54,11 +60,12 @@ def search_share(eval_dir: Path, models: list[str], threads: int = 2, limit: int
     from f2l.models.capabilities import CompactSun
     from f2l.models.registry import load_model
     from f2l.render.evaluate import _truth_on, case_of_source, load_cases, split_of
+    from f2l.render.photo_residual import ideal_photo
 
     eval_dir = Path(eval_dir)
     render_dir = eval_dir / "pbr"
     cases = load_cases(render_dir)
-    configs = _configs(threads)
+    configs = {g: _configs(threads, g) for g in GEOMETRIES}
     twins = {r.face_id: r for r in iter_records(eval_dir / "true_geometry") if getattr(r, "ok", False)}
     cache: dict = {}
     rows: list[dict] = []
@@ -75,18 +82,20 @@ def search_share(eval_dir: Path, models: list[str], threads: int = 2, limit: int
         grid = fitted.grid
         truth = _truth_on(render_dir, case, grid, cache)
         gt_sun = np.asarray(sky["sun_direction"], np.float64)
-        records = {"fitted": fitted, "true": twins[fitted.face_id]}
+        twin = twins[fitted.face_id]
+        ideal = ideal_photo(twin, truth, threads=threads)
+        inputs = {"fitted": (fitted, fitted.observed_rgb), "true": (twin, twin.observed_rgb),
+                  "true, ideal photo": (twin, ideal)}
         for name in models:
             model = load_model(name, grid)
             if not isinstance(model, CompactSun):
                 raise ValueError(f"{name!r} is not a compact-sun model: it has no sun to start from")
-            for geometry, rec in records.items():
-                obs = FaceObservation(rec.normals, rec.observed_rgb, rec.mask, rec.visibility_bits, grid,
-                                      face_id=rec.face_id)
+            for geometry, (rec, photo) in inputs.items():
+                obs = FaceObservation(rec.normals, photo, rec.mask, rec.visibility_bits, grid, face_id=rec.face_id)
                 for variant in VARIANTS:
                     starts = None if variant == "own starts" else gt_sun[None]
                     try:
-                        res = estimate(obs, model, configs[variant], sun_starts=starts)
+                        res = estimate(obs, model, configs[geometry][variant], sun_starts=starts)
                     except EstimationError:
                         continue
                     m = evaluate_pair(res.probe.astype(np.float64), truth, grid, overcast=False,
