@@ -307,6 +307,11 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert len(search_rows) == len(clear) * len(GEOMETRIES) * len(SEARCH_VARIANTS)
     for r in search_rows:
         assert r["case"] in clear and np.isfinite(r["objective"]) and 0.0 <= r["Sun-ang (°)"] <= 180.0
+    from f2l.render.search_share import search_table
+
+    held = search_table(search_rows, held_out=True)
+    assert "| all cases |" in held.splitlines()[0] and "tuning part" not in held
+    assert held.count("lower objective 2/2") + held.count("lower objective 1/2") + held.count("lower objective 0/2") == 3
     proc = subprocess.run([*f2l, "eval-real-search", str(eval_dir), "-m", "sh9"], capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode != 0 and "not a compact-sun model" in proc.stderr

@@ -142,6 +142,7 @@ def eval_real_search_cmd(
     model: list[str] = typer.Option(["sunsky"], "--model", "-m", help="Compact-sun models (repeatable)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Where search_share.md goes (default: EVAL_DIR)."),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N clear cases."),
+    held_out: bool = typer.Option(False, "--held-out", help="A set held out from tuning: one column over every case."),
     threads: int = typer.Option(2, help="Threads."),
 ) -> None:
     """The search's share of the sun error or the objective's: each fit run again from a start at the
@@ -157,7 +158,7 @@ def eval_real_search_cmd(
         fail(str(exc))
     if not rows:
         fail(f"{eval_dir}: no clear case with a fitted face and a true-geometry twin")
-    typer.echo(write_search(rows, out or eval_dir).read_text())
+    typer.echo(write_search(rows, out or eval_dir, held_out).read_text())
 
 
 def eval_real_ablations_cmd(

@@ -126,28 +126,31 @@ def _summary(rs: list[dict], own: dict) -> str:
     return cell + f"; lower objective {len(lower)}/{len(paired)}; far suns beaten {len(far_lower)}/{len(far)}{ends}"
 
 
-def search_table(rows: list[dict]) -> str:
-    """Markdown: per model, geometry and variant, each part's cell (:func:`_summary`)."""
-    lines = ["| model | geometry | starts (no elevation profile) | tuning part | reporting part |",
-             "|---|---|---|---|---|",
+def search_table(rows: list[dict], held_out: bool = False) -> str:
+    """Markdown: per model, geometry and variant, each part's cell (:func:`_summary`); with
+    ``held_out`` one column over every case (a set no default was tuned on)."""
+    parts = {"all cases": None} if held_out else {"tuning part": "tune", "reporting part": "report"}
+    lines = ["| model | geometry | starts (no elevation profile) | " + " | ".join(parts) + " |",
+             "|---" * (3 + len(parts)) + "|",
              f"| | | *(each cell: mean (median) Sun-ang, MAE (s), Full-dω MAE (l); for a start at the truth with the priors, on "
              f"how many faces it ends with a lower objective than the own starts, and of the own starts' suns "
-             f"more than {FAR_DEG:g}° off how many it beats, and how far its sun then is)* | | |"]
+             f"more than {FAR_DEG:g}° off how many it beats, and how far its sun then is)* |" + " |" * len(parts)]
     for model in dict.fromkeys(r["model"] for r in rows):
         for geometry in GEOMETRIES:
             sel = [r for r in rows if r["model"] == model and r["geometry"] == geometry]
             for variant in VARIANTS:
                 cells = []
-                for part in ("tune", "report"):
-                    own = {r["case"]: r for r in sel if r["variant"] == "own starts" and r["split"] == part}
-                    cells.append(_summary([r for r in sel if r["variant"] == variant and r["split"] == part], own))
+                for part in parts.values():
+                    in_part = [r for r in sel if part is None or r["split"] == part]
+                    own = {r["case"]: r for r in in_part if r["variant"] == "own starts"}
+                    cells.append(_summary([r for r in in_part if r["variant"] == variant], own))
                 if any(c != "—" for c in cells):
-                    lines.append(f"| {model} | {geometry} | {variant} | {cells[0]} | {cells[1]} |")
+                    lines.append(f"| {model} | {geometry} | {variant} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def write_search(rows: list[dict], out_dir: Path) -> Path:
+def write_search(rows: list[dict], out_dir: Path, held_out: bool = False) -> Path:
     from f2l.render.eval_report import write_table
 
     return write_table(rows, out_dir, "search_share", "The search's share of the sun error, or the objective's",
-                       search_table(rows))
+                       search_table(rows, held_out))
