@@ -149,6 +149,11 @@ def estimate(
         None, "--skin-gloss", min=0.0, max=1.0,
         help="The skin's gloss, an achromatic albedo added to the diffuse one (sun models; default "
              "0.05, for real skin). 0 reads the skin as Lambertian, as f2l's own synthetic faces are."),
+    skin_reflection: Optional[float] = typer.Option(
+        None, "--skin-reflection", min=0.0, max=1.0,
+        help="The skin's reflection of the sky, sun and ground about the mirror direction (sun models; "
+             "needs the records' 3-D points; default 0 = off). 0.01 is the value measured on make eval-real "
+             "(README); it costs about a third more time a face."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
@@ -166,7 +171,7 @@ def estimate(
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
             max_iter=max_iter, progress=not json_out, sun_prior=sun_prior, executor=executor,
-            ray_address=address, skin_gloss=skin_gloss,
+            ray_address=address, skin_gloss=skin_gloss, skin_reflection=skin_reflection,
         )
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))

@@ -107,6 +107,15 @@ class EstimatorConfig:
     # renders) it is a colour bias, largest on dark skin: 40 of them MAE (s) 0.048 -> 0.072; there
     # use 0 (`f2l estimate --skin-gloss 0`). README "What each change bought".
     skin_gloss: float = 0.05
+    # sun models (compact-sun): the skin's reflection of the environment about the mirror
+    # direction, g_r pi ∫ K_p(r·w) l(w) dw with a normalised Phong lobe of exponent p
+    # (f2l.estimate.reflection); needs the record's 3-D points; 0 = off. Chosen on the tuning
+    # part of `make eval-real` from p = 4, 8, 16, 32 and g_r = 0.01, 0.015, 0.02: p = 16, g_r =
+    # 0.01 gives mean Sun-ang 10.2 -> 9.1 deg, MAE (s) 0.163 -> 0.151 (reporting part 14.4 -> 14.8,
+    # 0.174 -> 0.164), but +36% time a face, past issue 16's time bound: off by default
+    # (`f2l estimate --skin-reflection 0.01`). README "The skin's reflection of the environment".
+    skin_reflection: float = 0.0
+    skin_reflection_exponent: float = 16.0
 
 
 @dataclass

@@ -80,7 +80,7 @@ class _Problem:
         if isinstance(model, CompactSun) and cfg.sun_albedo_prior_weight is not None:
             self.albedo_prior_weight = cfg.sun_albedo_prior_weight
         self.clip_hybrid = None
-        self.spec = self.clip_spec = None
+        self.spec = self.clip_spec = self.refl = self.clip_refl = None
         if self.linear:
             basis = np.asarray(basis, dtype=np.float64)
             if self.sky:
@@ -102,6 +102,7 @@ class _Problem:
             self.transport = transport
             self._init_clipped(obs, cfg, dtype)
             self._init_specular(obs, cfg, dtype)
+            self._init_reflection(obs, cfg, dtype)
         else:
             dense = torch.as_tensor(transport.dense(np.float32))
             if self.sky:
@@ -160,6 +161,35 @@ class _Problem:
         self.spec = pieces(self.idx)
         if self.clip_hybrid is not None:
             self.clip_spec = pieces(self._clipped_idx)
+
+    def _init_reflection(self, obs: FaceObservation, cfg: EstimatorConfig, dtype) -> None:
+        """The skin's reflection of the environment on the fitted and the clipped pixels
+        (``EstimatorConfig.skin_reflection``, f2l.estimate.reflection)."""
+        self.refl = self.clip_refl = None
+        if not cfg.skin_reflection or obs.points is None:
+            return
+        from f2l.estimate.reflection import SkinReflection
+
+        def pieces(pixels):
+            return SkinReflection(np.asarray(obs.normals)[pixels], np.asarray(obs.points)[pixels], self.grid,
+                                  self.hybrid.block, cfg.skin_reflection_exponent, dtype)
+
+        self.refl = pieces(self.idx)
+        if self.clip_hybrid is not None:
+            self.clip_refl = pieces(self._clipped_idx)
+
+    def reflection_terms(self, params, ground_albedo) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """g_r π ∫ K(r·ω) l dω on the fitted pixels (B, N, 3) and on the clipped ones (or None),
+        for the light of the last :meth:`light_transport` call."""
+        from f2l.estimate.reflection import sky_block_means_without_sun, sun_direction_of
+
+        l_sky, sun, e_h = self._sky_parts
+        m = sky_block_means_without_sun(self.hybrid, l_sky, sun)
+        d = sun_direction_of(params, self.model.sun_layout)
+        ground = ground_albedo[:, None] / np.pi * e_h
+        g_r = self.cfg.skin_reflection
+        clip = None if self.clip_refl is None else g_r * self.clip_refl.term(m, d, sun[2], ground)
+        return g_r * self.refl.term(m, d, sun[2], ground), clip
 
     def specular_term(self, spec, params, k_s) -> torch.Tensor:
         """(B, N, 3) k_s V D / (4 n·v) w_sun of the pixels of ``spec`` (f2l.estimate.specular)."""
@@ -221,6 +251,10 @@ class _Problem:
         cfg = self.cfg
         tl, rad = self.light_transport(params, ground_albedo)
         pred = self.apparent(albedo)[:, None, :] * tl
+        clip_extra = None
+        if self.refl is not None:  # the skin's reflection of the environment (skin_reflection)
+            refl, clip_extra = self.reflection_terms(params, ground_albedo)
+            pred = pred + refl
         k_s = None
         if self.spec is not None:  # the highlight's k_s: the best of a few levels for the data term
             unit = self.specular_term(self.spec, params, torch.ones(len(params), dtype=params.dtype))
@@ -236,6 +270,8 @@ class _Problem:
         if self.clip_hybrid is not None:
             n = resid.shape[1] * resid.shape[2]
             clip_spec = None if k_s is None or self.clip_spec is None else self.specular_term(self.clip_spec, params, k_s)
+            if clip_extra is not None:
+                clip_spec = clip_extra if clip_spec is None else clip_spec + clip_extra
             data = data + self.clipped_term(self._sky_parts, albedo, ground_albedo, clip_spec) / (n * self.target_scale)
         total = data + cfg.light_prior_weight * self.model.prior_nll(params)
         if cfg.sun_elevation_prior is not None and isinstance(self.model, SunAngles):

@@ -53,10 +53,11 @@ def run_estimates(
     ray_address: str | None = None,
     rows_per_part: int = 64,
     skin_gloss: float | None = None,
+    skin_reflection: float | None = None,
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
-    ``workers`` None: :func:`default_workers`; ``skin_gloss`` None: EstimatorConfig's (ignored
-    with ``config``)."""
+    ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
+    EstimatorConfig's (ignored with ``config``)."""
     from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records
     from f2l.models.registry import load_model
@@ -71,6 +72,8 @@ def run_estimates(
                                     sun_prior_from_capture=sun_prior)
     if config is None and skin_gloss is not None:
         cfg = dataclasses.replace(cfg, skin_gloss=float(skin_gloss))
+    if config is None and skin_reflection is not None:
+        cfg = dataclasses.replace(cfg, skin_reflection=float(skin_reflection))
     hashes = {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
         hashes[name] = config_hash(name, load_model(name, LatLongGrid(8, 16)).version, cfg)

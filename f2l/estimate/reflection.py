@@ -1,0 +1,96 @@
+"""The skin's gloss as a reflection of the environment, for sun models (``EstimatorConfig.skin_reflection``).
+
+Glossy skin reflects part of the light at its surface, untinted by the skin, in a lobe about the
+mirror direction r = 2 (n·v) n − v (v towards the camera). The term added to a face pixel's
+shading is
+
+    s_refl = g_r · π ∫ K_p(r·ω) l(ω) dω,     K_p(c) = (p + 1) / (2π) · max(c, 0)^p,
+
+K_p a normalised Phong lobe (∫ K_p dω = 1 over the hemisphere about r), so a uniform sky of
+radiance L gives g_r π L: g_r is the share of an unoccluded Lambertian irradiance the skin
+reflects this way. Where the constant gloss ``skin_gloss`` (ρ + g) reads the light about the
+normal, this one reads it about the mirror direction: the face's sides, seen at grazing angles,
+mirror the sky and the sun behind the head rather than the light they face.
+
+Pieces: the sky through the block means of ``SkyTransport`` (the kernel summed exactly over each
+block's texels), the sun exactly (its lobe taken as a point of irradiance w_sun), the ground
+(radiance ρ_g E_h / π) through the kernel's integral over the lower hemisphere. Visibility is
+left out: the mirror direction of a face pixel points away from the face. Needs the record's 3-D
+points (camera frame, camera at the origin) for v; without them there is no term.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from f2l.lighting.grid import LatLongGrid
+
+
+class SkinReflection:
+    """Per-pixel kernels of the reflection term for the pixels of one face (module docstring)."""
+
+    def __init__(self, normals: np.ndarray, points: np.ndarray, grid: LatLongGrid, block: tuple[int, int],
+                 exponent: float, dtype=torch.float64) -> None:
+        n = np.asarray(normals, dtype=np.float64)
+        v = -np.asarray(points, dtype=np.float64)
+        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        n_dot_v = np.clip((n * v).sum(1), 0.0, 1.0)
+        r = 2.0 * n_dot_v[:, None] * n - v
+        r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
+        self.exponent = float(exponent)
+        self.norm = 0.5 * (self.exponent + 1.0)  # π (p + 1) / (2π)
+        # (N, L) kernel x solid angle, float32, on a grid twice as coarse where that grid keeps
+        # texels of 5.6 deg or less (a third of the p = 16 lobe's half width) and the blocks allow
+        br, bc = block
+        if br % 2 == 0 and bc % 2 == 0 and grid.height % 2 == 0 and grid.width % 2 == 0 and grid.height >= 64:
+            grid, br, bc = LatLongGrid(grid.height // 2, grid.width // 2), br // 2, bc // 2
+        kernel = r.astype(np.float32) @ np.asarray(grid.directions_flat, np.float32).T
+        np.maximum(kernel, 0.0, out=kernel)
+        _power_inplace(kernel, self.exponent)
+        kernel *= (self.norm * np.asarray(grid.solid_angles_flat, np.float64)).astype(np.float32)[None]
+        rows, width = grid.sky_rows, grid.width
+        sky = kernel[:, : rows * width].reshape(len(n), rows // br, br, width // bc, bc)
+        self.k_blocks = torch.as_tensor(sky.sum((2, 4), dtype=np.float64).reshape(len(n), -1), dtype=dtype)  # (N, nb)
+        self.k_ground = torch.as_tensor(kernel[:, rows * width :].sum(1, dtype=np.float64), dtype=dtype)  # (N,)
+        self.mirror = torch.as_tensor(r, dtype=dtype)
+
+    def term(self, sky_block_means: torch.Tensor, sun_direction: torch.Tensor, w_sun: torch.Tensor,
+             ground_radiance: torch.Tensor) -> torch.Tensor:
+        """π ∫ K_p(r·ω) l(ω) dω, (B, N, 3): sky block means without the sun (B, nb, 3), sun
+        directions (B, 3) and RGB irradiances (B, 3), ground radiance (B, 3)."""
+        out = torch.einsum("nk,bkc->bnc", self.k_blocks, sky_block_means)
+        cos = (sun_direction @ self.mirror.T).clamp_min(0.0)  # (B, N)
+        out = out + (self.norm * cos**self.exponent)[:, :, None] * w_sun[:, None, :]
+        return out + self.k_ground[None, :, None] * ground_radiance[:, None, :]
+
+
+def _power_inplace(a: np.ndarray, exponent: float) -> None:
+    """a **= exponent in place; by repeated squaring where the exponent is a power of two."""
+    e = int(exponent)
+    if e == exponent and e >= 1 and e & (e - 1) == 0:
+        while e > 1:
+            np.multiply(a, a, out=a)
+            e //= 2
+    else:
+        np.power(a, exponent, out=a)
+
+
+def sky_block_means_without_sun(hybrid, l_sky: torch.Tensor, sun: tuple) -> torch.Tensor:
+    """(B, nb, 3) block means of the sky radiance (B, Lu, 3) with the sun's lobe taken out;
+    ``sun = (vals (B, K), flat (B, K), w_sun (B, 3))`` as ``CompactSun.radiance_parts`` gives it."""
+    vals, flat, w_sun = sun
+    m = hybrid.block_means(l_sky)
+    block_of = torch.as_tensor(hybrid.block_of)[flat]  # (B, K)
+    lobe = torch.zeros(m.shape[:2], dtype=m.dtype).scatter_add(1, block_of, vals * hybrid.d_omega[flat])
+    return m - (lobe / hybrid.omega_b[None])[:, :, None] * w_sun[:, None, :]
+
+
+def sun_direction_of(params: torch.Tensor, layout) -> torch.Tensor:
+    """(B, 3) unit sun directions of compact-sun parameters (grid convention: +Y up, azimuth 0 = −Z)."""
+    el = params[:, layout.elevation].clamp(0.0, 0.5 * math.pi)
+    az = params[:, layout.azimuth]
+    c = torch.cos(el)
+    return torch.stack([c * torch.sin(az), torch.sin(el), -c * torch.cos(az)], 1)
