@@ -47,9 +47,9 @@ def test_a_weaker_skin_prior_lets_the_data_and_the_sky_prior_set_the_colour():
 
 
 def test_other_models_keep_the_general_weight():
-    from f2l.estimate.estimator import _Problem
+    from f2l.estimate.problem import FaceProblem
 
     obs = next(_faces(1))
     cfg = dataclasses.replace(EstimatorConfig(), threads=1, sun_albedo_prior_weight=0.5)
-    assert _Problem(obs, load_model("sunsky", GRID), cfg).albedo_prior_weight == 0.5
-    assert _Problem(obs, load_model("sh9", GRID), cfg).albedo_prior_weight == cfg.albedo_prior_weight
+    assert FaceProblem(obs, load_model("sunsky", GRID), cfg).albedo_prior_weight == 0.5
+    assert FaceProblem(obs, load_model("sh9", GRID), cfg).albedo_prior_weight == cfg.albedo_prior_weight

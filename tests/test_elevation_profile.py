@@ -79,7 +79,7 @@ def test_the_highlight_k_s_reported_is_the_chosen_copys_when_a_pinned_copy_wins(
     also when that is the last pinned copy (it used to index past the copies' k_s)."""
     import f2l.estimate.sun_profile as profile
     from f2l.estimate import FaceObservation
-    from f2l.estimate.estimator import SPECULAR_LEVELS
+    from f2l.estimate.problem import SPECULAR_LEVELS
     from f2l.lighting.grid import LatLongGrid
     from f2l.synth.render import make_synthetic_set
 

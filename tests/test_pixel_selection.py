@@ -47,15 +47,16 @@ def test_clipped_channels_are_censored_and_the_others_kept(face_geometry, small_
     prediction is above it), an unclipped channel of the same pixel as an ordinary observation."""
     import torch
 
-    from f2l.estimate.estimator import EstimatorConfig, _Problem
+    from f2l.estimate import EstimatorConfig
+    from f2l.estimate.problem import FaceProblem
     from f2l.models import load_model
 
     obs, clipped = _sunny_face_with_clipping(face_geometry, small_grid, exposure=15.0)
     assert 0 < clipped.sum() < len(clipped)
     model = load_model("sunsky", small_grid)
-    prob = _Problem(obs, model, EstimatorConfig())
+    prob = FaceProblem(obs, model, EstimatorConfig())
     assert prob.clip_hybrid is not None and prob.clip_bound.any() and not prob.clip_bound.all()
-    assert not _Problem(obs, model, EstimatorConfig(clipped_bounds=False)).clip_hybrid
+    assert not FaceProblem(obs, model, EstimatorConfig(clipped_bounds=False)).clip_hybrid
     n = prob.clip_target.shape[0]
     dtype = prob.clip_target.dtype
     zero_sky = (torch.zeros(1, prob.L_sky, 3, dtype=dtype), None, torch.zeros(1, 3, dtype=dtype))

@@ -54,16 +54,16 @@ def test_the_gloss_term_gives_the_light_the_colour_a_lambertian_face_gives_it():
 
 
 def test_apparent_albedo_for_sun_models_only():
-    from f2l.estimate.estimator import _Problem
+    from f2l.estimate.problem import FaceProblem
 
     obs = next(_faces(1))[0]["glossy"]
     rho = np.array([0.3, 0.2, 0.1])
     assert EstimatorConfig().skin_gloss == pytest.approx(0.05)
     cfg = dataclasses.replace(EstimatorConfig(), threads=1, skin_gloss=0.04)
-    np.testing.assert_allclose(_Problem(obs, load_model("sunsky", GRID), cfg).apparent(rho), rho + 0.04)
-    assert _Problem(obs, load_model("sh9", GRID), cfg).apparent(rho) is rho  # linear models: Lambertian
+    np.testing.assert_allclose(FaceProblem(obs, load_model("sunsky", GRID), cfg).apparent(rho), rho + 0.04)
+    assert FaceProblem(obs, load_model("sh9", GRID), cfg).apparent(rho) is rho  # linear models: Lambertian
     cfg = dataclasses.replace(cfg, skin_gloss=0.0)
-    assert _Problem(obs, load_model("sunsky", GRID), cfg).apparent(rho) is rho
+    assert FaceProblem(obs, load_model("sunsky", GRID), cfg).apparent(rho) is rho
 
 
 def test_estimate_cli_skin_gloss(small_shards, tmp_path):

@@ -17,7 +17,7 @@ import torch
 
 from f2l.estimate import EstimatorConfig, FaceObservation, estimate
 from f2l.estimate import sun_search
-from f2l.estimate.estimator import _Problem
+from f2l.estimate.problem import FaceProblem
 from f2l.estimate.sky_transport import SkyTransport
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.models.registry import load_model
@@ -419,7 +419,7 @@ def test_search_finds_the_sun(face, face_transport, model, which):
     sun_texel = int(texels[which])
     albedo, rho_g = np.array([0.55, 0.38, 0.3]), 0.2
     obs, scale, sun_dir = _sunny_observation(face, face_transport[0], model, sun_texel, albedo, rho_g)
-    prob = _Problem(obs, model, EstimatorConfig())
+    prob = FaceProblem(obs, model, EstimatorConfig())
     starts = prob.sun_search_starts(albedo, rho_g)
     found = prob.search_candidates
     assert len(found) == min(256, texels.size * len(model.search_shapes())) + 1  # the best 256 + no-sun

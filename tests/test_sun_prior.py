@@ -49,7 +49,7 @@ def test_photo_without_exif_gives_a_reason(tmp_path):
 
 def test_elevation_prior_restricts_the_search():
     from f2l.estimate import EstimatorConfig, FaceObservation
-    from f2l.estimate.estimator import _Problem
+    from f2l.estimate.problem import FaceProblem
     from f2l.estimate.skin import skin_albedo_mean
     from f2l.models.registry import load_model
     from f2l.synth.render import make_synthetic_set
@@ -59,7 +59,7 @@ def test_elevation_prior_restricts_the_search():
     obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid)
     el0 = math.radians(face.meta["sky"]["sun_elevation_deg"])
     model = load_model("sunsky", grid)
-    prob = _Problem(obs, model, EstimatorConfig(sun_elevation_prior=(el0, 0.05)))
+    prob = FaceProblem(obs, model, EstimatorConfig(sun_elevation_prior=(el0, 0.05)))
     starts = prob.sun_search_starts(skin_albedo_mean(), 0.2)
     half_row = 0.5 * math.pi / grid.height
     elevations = np.array([c.elevation_rad for c in prob.search_candidates])

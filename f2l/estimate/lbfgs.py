@@ -32,7 +32,7 @@ def minimise(objective, variables, max_iter: int, tolerance_change: float, toler
 
 
 def run_lbfgs(prob, unpack, variables, cfg: EstimatorConfig, max_iter: int):
-    """:func:`minimise` on the objective of ``prob`` (:class:`f2l.estimate.estimator._Problem`)
+    """:func:`minimise` on the objective of ``prob`` (:class:`f2l.estimate.problem.FaceProblem`)
     over the unconstrained (x_theta, x_gnd, x_rho), mapped to parameters by ``unpack``. Sun models
     stop on a change below ``cfg.tolerance`` x 1e-2 of the starting data term, the others on
     ``cfg.tolerance``; a fixed albedo (``cfg.fixed_albedo``) is not trained."""

@@ -12,7 +12,7 @@ distribution, shadowing-masking G ≈ 1, the Fresnel factor folded into ``k_s``)
 so the shading model of a face pixel becomes ``s = ρ ⊙ (T l) + spec`` (paper §3.2 plus the
 specular term the paper leaves to future work). ``k_s`` (F0 of skin ≈ 0.028 for an index of 1.4)
 is chosen per face at every evaluation of the objective as the best of a few levels in
-[0, ``sun_specular_max``] for the data term (``f2l.estimate.estimator.SPECULAR_LEVELS``), so a
+[0, ``sun_specular_max``] for the data term (``f2l.estimate.problem.SPECULAR_LEVELS``), so a
 face without a highlight keeps k_s = 0; the roughness is fixed. The sky's own highlight is
 left out: it is broad and dim next to the sun's. ``V`` is the pixel's visibility bit of the sky
 texel holding the sun (no gradient flows through it; through ``D`` and ``n·s`` it does).
