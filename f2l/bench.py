@@ -81,7 +81,7 @@ def run_bench(
         sky = face.meta.get("sky", {})
         overcast = sky.get("kind") == "overcast"
         gt_sun = None if overcast or sky.get("sun_direction") is None else np.asarray(sky["sun_direction"])
-        obs = FaceObservation(face.normals, face.observed_rgb, face.mask, bits, grid)
+        obs = FaceObservation(face.normals, face.observed_rgb, face.mask, bits, grid, points=face.points)
         for name in names:
             try:  # a plugin that is refused (capabilities) or fails to load is a row, not a crash
                 model = load_model(name, grid)
@@ -171,7 +171,7 @@ def _sun_core_skip_table(name: str, n: int, grid: LatLongGrid, threads: int, see
     model = load_model(name, grid)
     rows = {"skipped when overcast (default)": [], "always exact": []}
     for face in make_synthetic_set(n, grid, seed + 1000, image_size=image_size, threads=threads, overcast_fraction=1.0):
-        obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid)
+        obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid, points=face.points)
         for label, share in (("skipped when overcast (default)", 0.02), ("always exact", 0.0)):
             res = estimate(obs, model, EstimatorConfig(threads=threads, sun_core_min_share=share))
             m = evaluate_pair(res.probe, face.gt_probe, grid, overcast=True)

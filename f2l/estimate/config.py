@@ -112,8 +112,9 @@ class EstimatorConfig:
     # (f2l.estimate.reflection); needs the record's 3-D points; 0 = off. Chosen on the tuning
     # part of `make eval-real` from p = 4, 8, 16, 32 and g_r = 0.01, 0.015, 0.02: p = 16, g_r =
     # 0.01 gives mean Sun-ang 10.2 -> 9.1 deg, MAE (s) 0.163 -> 0.151 (reporting part 14.4 -> 14.8,
-    # 0.174 -> 0.164), but +36% time a face, past issue 16's time bound: off by default
-    # (`f2l estimate --skin-reflection 0.01`). README "The skin's reflection of the environment".
+    # 0.174 -> 0.164). Off by default (`f2l estimate --skin-reflection 0.01`): on Lambertian faces
+    # (f2l's own renders) it is a bias (`make demo`: Sun+Sky MAE (s) 0.043 -> 0.096), and it costs
+    # +15% time a face against issue 16's time bound. README "The skin's reflection of the environment".
     skin_reflection: float = 0.0
     skin_reflection_exponent: float = 16.0
 

@@ -179,8 +179,8 @@ class FaceProblem:
         for the light of the last :meth:`light_transport` call."""
         from f2l.estimate.reflection import sky_block_means_without_sun, sun_direction_of
 
-        l_sky, sun, e_h = self._sky_parts
-        m = sky_block_means_without_sun(self.hybrid, l_sky, sun)
+        l_sky, sun, e_h, m_sky = self._sky_parts
+        m = sky_block_means_without_sun(self.hybrid, l_sky, sun, m_sky)
         d = sun_direction_of(params, self.model.sun_layout)
         ground = ground_albedo[:, None] / np.pi * e_h
         g_r = self.cfg.skin_reflection
@@ -197,10 +197,12 @@ class FaceProblem:
 
     def clipped_term(self, parts, albedo, ground_albedo, spec=None) -> torch.Tensor:
         """Σ over clipped pixels and channels of the censored / ordinary Charbonnier terms, (B,);
-        ``spec`` (B, N_clipped, 3) is the sun's highlight on those pixels (``sun_specular``)."""
-        l_sky, sun, e_h = parts
+        ``parts`` = (sky radiance, sun, E_h[, the sky's block means]) as :meth:`light_transport`
+        keeps them; ``spec`` (B, N_clipped, 3) is the sun's highlight on those pixels (``sun_specular``)."""
+        l_sky, sun, e_h = parts[:3]
+        m_sky = parts[3] if len(parts) > 3 else None  # the sky's block means, where computed already
         self.clip_hybrid.core_texels = self.hybrid.core_texels
-        tl = self.clip_hybrid.apply(l_sky, sun)
+        tl = self.clip_hybrid.apply(l_sky, sun, m_sky)
         tl = tl + self.clip_g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
         resid = self.apparent(albedo)[:, None, :] * tl - self.clip_target[None]
         if spec is not None:
@@ -222,10 +224,11 @@ class FaceProblem:
         if self.hybrid is not None:
             rad, sun = self.model.radiance_parts(params)
             l_sky = rad[:, : self.L_sky]
-            tl = self.hybrid.apply(l_sky, sun)
+            m_sky = self.hybrid.block_means(l_sky)  # shared with the clipped pixels and the reflection
+            tl = self.hybrid.apply(l_sky, sun, m_sky)
             e_h = torch.einsum("l,blc->bc", self.e_sky, l_sky)
             tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
-            self._sky_parts = (l_sky, sun, e_h)
+            self._sky_parts = (l_sky, sun, e_h, m_sky)
             return tl, rad
         rad = self.model.radiance(params)
         if self.sky:

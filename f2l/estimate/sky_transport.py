@@ -101,14 +101,17 @@ class SkyTransport:
         pos = torch.topk(energy, k, dim=1).indices
         return torch.gather(sun_vals, 1, pos), torch.gather(sun_flat, 1, pos).numpy()
 
-    def apply(self, l_sky: torch.Tensor, sun: tuple | None = None) -> torch.Tensor:
+    def apply(self, l_sky: torch.Tensor, sun: tuple | None = None,
+              block_means: torch.Tensor | None = None) -> torch.Tensor:
         """T_sky l (B, N, 3) for sky radiance (B, Lu, 3) that includes the sun.
 
         ``sun = (vals (B, K), flat (B, K), w_sun (B, 3))``: the lobe's texel means and RGB
         weight (``CompactSun.radiance_parts``) for the exact core correction; None skips it (a
-        sun-less or overcast solution, or the block-only approximation).
+        sun-less or overcast solution, or the block-only approximation). ``block_means``: the
+        radiance's :meth:`block_means`, where the caller has them (another pixel set's transport
+        on the same grid and blocks).
         """
-        m = self.block_means(l_sky)  # (B, nb, 3)
+        m = self.block_means(l_sky) if block_means is None else block_means  # (B, nb, 3)
         B = m.shape[0]
         tl = (self.t_blk @ m.transpose(0, 1).reshape(m.shape[1], 3 * B)).reshape(-1, B, 3).transpose(0, 1)
         if sun is not None and self.core_texels > 0:
