@@ -153,7 +153,8 @@ def estimate(
         None, "--skin-reflection", min=0.0, max=1.0,
         help="The skin's reflection of the sky, sun and ground about the mirror direction (sun models; "
              "needs the records' 3-D points; default 0 = off). 0.01 is the value measured on make eval-real "
-             "(README); it costs about a third more time a face."),
+             "(README); it costs about 15% more time a face, and on Lambertian faces (f2l's own renders) "
+             "it is a bias."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
