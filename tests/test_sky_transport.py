@@ -265,6 +265,97 @@ def test_block_means(sky_transport):
     assert _rel(got, ref_t) < 1e-6
 
 
+@pytest.mark.parametrize("channel_first", [False, True])
+def test_sky_summary_matches_block_means_and_its_gradient(sky_transport, channel_first):
+    """sky_summary = (block_means, e . sky) for a sky laid out either way (a model's transposed
+    channel-first view or a plain (B, Lu, 3) tensor); its hand-written backward against autograd
+    through the elementwise form, and against finite differences (gradcheck)."""
+    st = sky_transport
+    rng = np.random.default_rng(11)
+    x = torch.from_numpy(rng.gamma(1.0, size=(2, 3, LU) if channel_first else (2, LU, 3)))
+    sky = x.transpose(1, 2) if channel_first else x
+    e = torch.from_numpy(np.maximum(GRID.directions_flat[:LU, 1], 0.0) * GRID.solid_angles_flat[:LU])
+    m, e_sky = st.sky_summary(sky, e)
+    assert m.shape == (2, st.t_blk.shape[1], 3) and e_sky.shape == (2, 3)
+    assert torch.allclose(m, st.block_means(sky), rtol=1e-12, atol=0)
+    assert torch.allclose(e_sky, torch.einsum("l,blc->bc", e, sky), rtol=1e-12, atol=0)
+    w_m = torch.from_numpy(rng.normal(size=m.shape))
+    w_e = torch.from_numpy(rng.normal(size=e_sky.shape))
+    a = sky.detach().clone().requires_grad_(True)
+    m, e_sky = st.sky_summary(a, e)
+    (g_fused,) = torch.autograd.grad((m * w_m).sum() + (e_sky * w_e).sum(), a)
+    b = sky.detach().clone().requires_grad_(True)
+    (g_ref,) = torch.autograd.grad((st.block_means(b) * w_m).sum() + (torch.einsum("l,blc->bc", e, b) * w_e).sum(), b)
+    assert torch.allclose(g_fused, g_ref, rtol=1e-12, atol=1e-15 * float(g_ref.abs().max()))
+    assert g_fused.stride(1) == (1 if channel_first else 3)  # the gradient is laid out as the sky
+    small = sky[:1].detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda s: st.sky_summary(s, e), (small,), eps=1e-6, atol=1e-8)
+
+
+def test_lobe_block_means_are_the_scattered_lobes(sky_transport, model):
+    st = sky_transport
+    params = torch.cat([_sunsky_params(el, SUN_AZIMUTH, 1024) for el in ELEVATIONS])
+    with torch.no_grad():
+        _, _, (vals, flat, _) = model.light_parts(params)
+        dense = torch.zeros(len(ELEVATIONS), LU, dtype=torch.float64).scatter_add_(1, flat, vals)
+        ref = st.block_means(dense[:, :, None].expand(-1, -1, 3).contiguous())[:, :, 0]
+        assert torch.allclose(st.lobe_block_means(vals, flat), ref, rtol=1e-12, atol=1e-15 * float(ref.max()))
+
+
+def test_light_parts_add_up_to_the_radiance(model):
+    """radiance_parts' upper rows = w_sky ⊙ sky + the lobe scattered times w_sun; rows below 0."""
+    params = torch.cat([_sunsky_params(el, SUN_AZIMUTH, 8192) for el in ELEVATIONS])
+    with torch.no_grad():
+        rad, _ = model.radiance_parts(params)
+        sky, w_sky, (vals, flat, w_sun) = model.light_parts(params)
+        lobe = torch.zeros(len(ELEVATIONS), LU, dtype=torch.float64).scatter_add_(1, flat, vals)
+    ref = sky * w_sky[:, None, :] + lobe[:, :, None] * w_sun[:, None, :]
+    assert torch.allclose(rad[:, :LU], ref, rtol=1e-14, atol=0)
+    assert torch.count_nonzero(rad[:, LU:]) == 0
+
+
+def test_weighted_sum_of_residual_columns(face_transport):
+    """ColumnCache.weighted_sum = the gathered columns' weighted sum, in value and gradient,
+    also when the call has to grow the store."""
+    t, _ = face_transport
+    st = SkyTransport(t, GRID)  # a fresh cache: 64 slots, grown by the call below
+    rng = np.random.default_rng(2)
+    texels = rng.choice(LU, size=(3, 48), replace=False)
+    w = torch.from_numpy(rng.gamma(1.0, size=(3, 48))).requires_grad_(True)
+    got = st.cache.weighted_sum(texels, w)
+    assert st.cache.used >= 64
+    ref = torch.bmm(w[:, None, :], st.cache.rows(texels))[:, 0]
+    assert torch.allclose(got, ref, rtol=1e-12, atol=1e-14 * float(ref.detach().abs().max()))
+    g = torch.from_numpy(rng.normal(size=got.shape))
+    (g_got,) = torch.autograd.grad((got * g).sum(), w)
+    (g_ref,) = torch.autograd.grad((ref * g).sum(), w)
+    assert torch.allclose(g_got, g_ref, rtol=1e-12, atol=1e-14 * float(g_ref.abs().max()))
+
+
+def test_objective_reads_the_parts_as_the_assembled_radiance(face, face_transport, model):
+    """FaceProblem.light_transport (sky block means and E_h from the parts, never the assembled
+    radiance) against the transport of the assembled radiance: same T l and E_h, same gradient."""
+    from f2l.transport import visibility_stats
+
+    bits, _ = visibility_stats(face.vertices, face.faces, face.points, face.normals, GRID, method="exact",
+                               pixel_rc=face.pixel_rc)
+    obs = FaceObservation(face.normals, face.observed_rgb, face.mask, bits, GRID, points=face.points)
+    prob = FaceProblem(obs, model, EstimatorConfig(threads=1))
+    params = torch.cat([_sunsky_params(el, SUN_AZIMUTH, 4096) for el in ELEVATIONS]).requires_grad_(True)
+    ground = torch.full((len(ELEVATIONS),), 0.2, dtype=torch.float64)
+    w = torch.from_numpy(np.random.default_rng(3).normal(size=(len(ELEVATIONS), prob.hybrid.num_pixels, 3)))
+    tl, _ = prob.light_transport(params, ground)
+    (g_got,) = torch.autograd.grad((tl * w).sum(), params)
+    rad, sun = model.radiance_parts(params)
+    l_sky = rad[:, :LU]
+    e_h = torch.einsum("l,blc->bc", prob.e_sky, l_sky)
+    ref = prob.hybrid.apply(l_sky, sun) + prob.g[None, :, None] * (ground[:, None, None] / np.pi) * e_h[:, None, :]
+    (g_ref,) = torch.autograd.grad((ref * w).sum(), params)
+    assert torch.allclose(tl, ref, rtol=1e-10, atol=1e-12 * float(ref.detach().abs().max()))
+    assert torch.allclose(prob._sky_parts[2], e_h, rtol=1e-12)
+    assert torch.allclose(g_got, g_ref, rtol=1e-8, atol=1e-10 * float(g_ref.abs().max()))
+
+
 def _weighted_loss(model, st, params, weights):
     rad, sun = model.radiance_parts(params)
     return (st.apply(rad[:, :LU], sun) * weights).sum()

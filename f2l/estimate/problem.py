@@ -222,14 +222,18 @@ class FaceProblem:
                 tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
             return tl, None
         if self.hybrid is not None:
-            rad, sun = self.model.radiance_parts(params)
-            l_sky = rad[:, : self.L_sky]
-            m_sky = self.hybrid.block_means(l_sky)  # shared with the clipped pixels and the reflection
-            tl = self.hybrid.apply(l_sky, sun, m_sky)
-            e_h = torch.einsum("l,blc->bc", self.e_sky, l_sky)
+            # l = w_sky ⊙ sky + w_sun ⊙ lobe on the sky rows: the transport reads its block means
+            # and E_h, each the sum of the sky's (read once) and the sparse lobe's
+            sky, w_sky, sun = self.model.light_parts(params)
+            vals, flat, w_sun = sun
+            m_unit, e_unit = self.hybrid.sky_summary(sky, self.e_sky)
+            lobe_m = self.hybrid.lobe_block_means(vals, flat)
+            m_sky = m_unit * w_sky[:, None, :] + lobe_m[:, :, None] * w_sun[:, None, :]  # shared below
+            e_h = e_unit * w_sky + (self.e_sky[flat] * vals).sum(1)[:, None] * w_sun
+            tl = self.hybrid.apply(None, sun, m_sky)
             tl = tl + self.g[None, :, None] * (ground_albedo[:, None, None] / np.pi) * e_h[:, None, :]
-            self._sky_parts = (l_sky, sun, e_h, m_sky)
-            return tl, rad
+            self._sky_parts = (None, sun, e_h, m_sky)
+            return tl, None
         rad = self.model.radiance(params)
         if self.sky:
             l_sky = rad[:, : self.L_sky]

@@ -45,11 +45,22 @@ class ColumnCache:
 
     def rows(self, texels: np.ndarray) -> torch.Tensor:
         """(..., N) residual columns of the flat sky texel indices ``texels`` (any shape)."""
+        slots = self.slots(texels)  # first: it may grow (replace) the store
+        return self.store[slots]
+
+    def slots(self, texels: np.ndarray) -> torch.Tensor:
+        """Rows of :attr:`store` holding the residual columns of ``texels`` (read on first use)."""
         texels = np.asarray(texels, dtype=np.int64)
         missing = np.unique(texels[self.slot[texels] < 0])
         if missing.size:
             self._add(missing)
-        return self.store[torch.from_numpy(self.slot[texels])]
+        return torch.from_numpy(self.slot[texels])
+
+    def weighted_sum(self, texels: np.ndarray, weights: torch.Tensor) -> torch.Tensor:
+        """(B, N) sum_j weights[:, j] R[:, texels[:, j]] for texels, weights (B, k), without
+        gathering the (B, k, N) columns (``embedding_bag``; differentiable in ``weights``)."""
+        slots = self.slots(texels)  # first: it may grow (replace) the store
+        return torch.nn.functional.embedding_bag(slots, self.store, per_sample_weights=weights, mode="sum")
 
     def _add(self, texels: np.ndarray) -> None:
         need = self.used + texels.size
@@ -86,6 +97,23 @@ class SkyTransport:
         self.omega_b = torch.from_numpy(omega_b)
         self.block_of = block_of
         self.cache = ColumnCache(transport, t_blk, block_of, sa / omega_b[block_of])
+        self._share = None  # dOmega_w / Omega_b(w) as (rows / br, br, W / bc, bc), made on first use
+
+    def sky_summary(self, sky: torch.Tensor, e_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A sky radiance (B, Lu, 3) -> its block means (B, nb, 3) (as :meth:`block_means`) and
+        sum_w e_weights[w] sky[:, w] (B, 3) (e.g. the horizontal irradiance E_h), in one autograd
+        node (:class:`_SkySummary`): the full-resolution sky is read once and gets its gradient
+        in one pass, where the elementwise form keeps several sky-sized arrays for backward."""
+        (nbr, nbc), (br, bc) = self.shape_blocks, self.block
+        if self._share is None:
+            self._share = (self.d_omega / self.omega_b[torch.from_numpy(self.block_of)]).reshape(nbr, br, nbc, bc)
+        return _SkySummary.apply(sky, self._share, e_weights.to(sky.dtype))
+
+    def lobe_block_means(self, vals: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+        """(B, nb) block means of a sparse lobe (texel means ``vals`` (B, K) at ``flat`` (B, K))."""
+        block_of = torch.as_tensor(self.block_of)[flat]
+        sums = vals.new_zeros(vals.shape[0], self.t_blk.shape[1]).scatter_add_(1, block_of, vals * self.d_omega[flat])
+        return sums / self.omega_b[None]
 
     def block_means(self, l_sky: torch.Tensor) -> torch.Tensor:
         """(B, Lu, 3) radiance -> (B, nb, 3) solid-angle-weighted block means m."""
@@ -103,7 +131,8 @@ class SkyTransport:
 
     def apply(self, l_sky: torch.Tensor, sun: tuple | None = None,
               block_means: torch.Tensor | None = None) -> torch.Tensor:
-        """T_sky l (B, N, 3) for sky radiance (B, Lu, 3) that includes the sun.
+        """T_sky l (B, N, 3) for sky radiance (B, Lu, 3) that includes the sun (None where
+        ``block_means`` is given: the radiance is read only through them and ``sun``).
 
         ``sun = (vals (B, K), flat (B, K), w_sun (B, 3))``: the lobe's texel means and RGB
         weight (``CompactSun.radiance_parts``) for the exact core correction; None skips it (a
@@ -117,7 +146,39 @@ class SkyTransport:
         if sun is not None and self.core_texels > 0:
             vals, flat, w_sun = sun
             core_vals, core_flat = self.core(vals, flat)
-            resid = self.cache.rows(core_flat)  # (B, k, N)
-            shade = torch.bmm(core_vals[:, None, :], resid)[:, 0]  # (B, N)
+            shade = self.cache.weighted_sum(core_flat, core_vals)  # (B, N)
             tl = tl + shade[:, :, None] * w_sun[:, None, :]
         return tl
+
+
+class _SkySummary(torch.autograd.Function):
+    """(sky (B, Lu, 3), share (nbr, br, nbc, bc) = dOmega / Omega_b, e (Lu,)) -> (block means
+    (B, nb, 3), e . sky (B, 3)). Both are linear in the sky, so the backward is one broadcast:
+    dL/dsky_w = share_w dL/dm_b(w) + e_w dL/de, laid out as the sky is (a channel-first sky, as
+    a model's transposed view, gets a channel-first gradient)."""
+
+    @staticmethod
+    def forward(ctx, sky, share, e):
+        B, (nbr, br, nbc, bc) = sky.shape[0], share.shape
+        channel_first = sky.stride(1) == 1 and sky.stride(2) != 1
+        ctx.save_for_backward(share, e)
+        ctx.channel_first = channel_first
+        if channel_first:  # read the sky in its own memory order
+            s = sky.transpose(1, 2).reshape(B, 3, nbr, br, nbc, bc)
+            m = (s * share).sum((3, 5)).reshape(B, 3, nbr * nbc).transpose(1, 2)
+            return m, sky.transpose(1, 2) @ e
+        m = (sky.reshape(B, nbr, br, nbc, bc, 3) * share[..., None]).sum((2, 4)).reshape(B, nbr * nbc, 3)
+        return m, e @ sky
+
+    @staticmethod
+    def backward(ctx, grad_m, grad_e):
+        share, e = ctx.saved_tensors
+        B, (nbr, _, nbc, _) = grad_m.shape[0], share.shape
+        if ctx.channel_first:
+            g = grad_m.transpose(1, 2).reshape(B, 3, nbr, 1, nbc, 1) * share
+            g = g.reshape(B, 3, -1).addcmul_(grad_e[:, :, None], e[None, None, :])
+            return g.transpose(1, 2), None, None
+        g = grad_m.reshape(B, nbr, 1, nbc, 1, 3) * share[..., None]
+        g = g.reshape(B, -1, 3).addcmul_(e[None, :, None], grad_e[:, None, :])
+        return g, None, None
+

@@ -145,6 +145,18 @@ class CompactSun(SunAngles):
     def radiance_parts(self, params: torch.Tensor) -> tuple[torch.Tensor, tuple]:
         """(radiance (B, L, 3) float64, sun = (vals (B, K), flat (B, K), w_sun (B, 3))): the lobe's
         texel means on its window and flat indices (``sun_lobe_sparse``), for the exact core."""
+        sky, w_sky, sun = self.light_parts(params)
+        vals, flat, w_sun = sun
+        upper = sky * w_sky[:, None, :]
+        upper = upper.scatter_add_(1, flat[:, :, None].expand(-1, -1, 3), vals[:, :, None] * w_sun[:, None, :])
+        out = torch.nn.functional.pad(upper, (0, 0, 0, self.grid.size - upper.shape[1]))
+        return out, sun
+
+    def light_parts(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+        """The radiance's parts before they are added up: the unit-weight sky (B, sky_rows * W, 3)
+        (float64, ``sky(params)``), w_sky (B, 3) and sun = (vals, flat, w_sun) as in
+        :meth:`radiance_parts`, whose upper rows are w_sky ⊙ sky + the lobe scattered times w_sun.
+        The estimator reads them apart: it needs the sky's block means, not its texels."""
         from f2l.lighting.sun_lobe import sun_lobe_sparse
 
         grid, lay = self.grid, self.sun_layout
@@ -154,12 +166,8 @@ class CompactSun(SunAngles):
         elevation = p[:, lay.elevation].clamp(0.0, 0.5 * math.pi)
         kappa = (p[:, lay.kappa] if lay.kappa is not None else torch.full_like(elevation, self.sun_kappa))
         kappa = kappa.clamp(*KAPPA_RANGE)
-        rows = grid.sky_rows
-        vals, flat = sun_lobe_sparse(grid, 0.5 * math.pi - elevation, p[:, lay.azimuth], kappa, rows)
-        upper = self.sky(p).to(torch.float64) * w_sky[:, None, :]
-        upper = upper.scatter_add(1, flat[:, :, None].expand(-1, -1, 3), vals[:, :, None] * w_sun[:, None, :])
-        out = torch.nn.functional.pad(upper, (0, 0, 0, grid.size - upper.shape[1]))
-        return out, (vals, flat, w_sun)
+        vals, flat = sun_lobe_sparse(grid, 0.5 * math.pi - elevation, p[:, lay.azimuth], kappa, grid.sky_rows)
+        return self.sky(p).to(torch.float64), w_sky, (vals, flat, w_sun)
 
     def radiance(self, params: torch.Tensor) -> torch.Tensor:
         return self.radiance_parts(params)[0].to(params.dtype)

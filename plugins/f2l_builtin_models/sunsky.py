@@ -213,10 +213,11 @@ class SunSky(CompactSun, LightingModel):
         )
 
     def sky(self, params: torch.Tensor) -> torch.Tensor:
-        """(B, Lu, 3) normalised Preetham sky on the upper rows (float64), w_sky not applied."""
+        """(B, Lu, 3) normalised Preetham sky on the upper rows (float64), w_sky not applied: a
+        transposed view of the channel-first computation (copying it costs more than it saves)."""
         p = self.clamp_params(params.to(torch.float64))
         rgb, scale = self._sky(p, *self._consts(params.device))
-        return (rgb * scale[:, None, None]).transpose(1, 2).contiguous()
+        return (rgb * scale[:, None, None]).transpose(1, 2)
 
     def _sky(self, p, dirs, sa, rgb_from_xy1, luma) -> tuple[torch.Tensor, torch.Tensor]:
         """Unnormalised sky RGB (B, 3, Lu) and its normaliser (B,) (channel-first: contiguous
@@ -243,8 +244,12 @@ class SunSky(CompactSun, LightingModel):
         g = gamma.reshape(B, 1, rows, W)
         q = torch.addcmul(row_f, row_f * e, (cos_gamma * cos_gamma).reshape(B, 1, rows, W))
         q = q.addcmul_(row_f * c, (d * g).exp_()).reshape(B, 3, rows * W)
-        ratio = q[:, 0] / q[:, 2].clamp_min(1e-3)  # Y / y (y floored: the division stays finite)
-        xy1 = torch.baddbmm(rgb_from_xy1[:, 2:3].expand(B, 3, 1), rgb_from_xy1[:, :2].expand(B, 3, 2), q[:, 1:])
+        # q's channels are read whole (unbind, and N padded with a zero column for Y): slicing
+        # them would make autograd zero-fill and add a q-sized gradient per slice
+        q_big_y, _, q_y = q.unbind(1)
+        ratio = q_big_y / q_y.clamp_min(1e-3)  # Y / y (y floored: the division stays finite)
+        n_yxy = torch.nn.functional.pad(rgb_from_xy1[:, :2], (1, 0))  # (3, 3): 0, N_x, N_y
+        xy1 = torch.baddbmm(rgb_from_xy1[:, 2:3].expand(B, 3, 1), n_yxy.expand(B, 3, 3), q)
         rgb = (xy1 * ratio[:, None, :]).relu_()  # (B, 3, Lu); out-of-gamut negatives clipped
         integral = (luma @ rgb) @ sa  # (B,)
         return rgb, SKY_INTEGRAL / integral.clamp_min(1e-300)
