@@ -132,9 +132,10 @@ def synth(
 
 @app.command()
 def estimate(
-    shards: list[Path] = typer.Argument(..., help="Shard directories or .parquet files."),
+    shards: list[Path] = typer.Argument(..., help="Photos (JPEG/PNG/TIFF or camera RAW), folders of photos, shard directories or .parquet files. Every face of a photo is fitted on the way and cached by content under OUT/faces."),
     model: list[str] = typer.Option(..., "--model", "-m", help="Lighting model name (repeatable)."),
-    out: Path = typer.Option(..., "--out", help="Output directory (estimates.parquet, probes/, previews/)."),
+    out: Path = typer.Option(..., "--out", help="Output directory (estimates.parquet, probes/, previews/; faces/ for photos)."),
+    min_face_px: Optional[float] = typer.Option(None, "--min-face-px", min=8.0, help="Photos: the smallest face to find and fit, in px (default: the pipeline's, 40)."),
     workers: Optional[int] = typer.Option(None, help="Parallel workers (default: cores // threads)."),
     threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
     executor: str = typer.Option("local", help="local (a process pool on this machine) or ray (Ray Data; needs the 'ray' extra)."),
@@ -163,11 +164,27 @@ def estimate(
     from f2l.estimate.ray_executor import ExecutorUnavailable
     from f2l.models.registry import ModelNotFoundError
 
+    from f2l.pipeline.photos import fit_photos, is_photo_input
+
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
-        _fail(f"no such shard path: {', '.join(missing)}")
+        _fail(f"no such photo or shard path: {', '.join(missing)}")
     if executor not in ("local", "ray"):
         raise typer.BadParameter("must be local or ray", param_hint="--executor")
+    photos = [s for s in shards if is_photo_input(s)]
+    fitted = None
+    if photos:
+        from f2l.face.landmarker import LandmarkerError
+        from f2l.synth.facemesh import FaceMeshError
+
+        try:
+            fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=not json_out)
+        except (LandmarkerError, FaceMeshError) as exc:
+            _fail(str(exc))
+        shards = [s for s in shards if not is_photo_input(s)] + fitted["shards"]
+        if not shards:
+            reasons = "; ".join(r["message"] for r in fitted["photos"][:5])
+            _fail(f"no usable face in {len(fitted['photos'])} photo(s): {reasons}")
     try:
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
@@ -178,6 +195,10 @@ def estimate(
         _fail(str(exc.args[0]))
     except ExecutorUnavailable as exc:
         _fail(str(exc))
+    if fitted is not None:
+        summary["photos"] = {"counts": fitted["counts"],
+                             "not_ok": [{k: r[k] for k in ("source_path", "status", "message")}
+                                        for r in fitted["photos"] if r["status"] != "ok"]}
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["ok"] == 0 and summary["total"] > 0 and not summary["skipped_done"]:
         raise typer.Exit(code=1)
@@ -359,7 +380,7 @@ def build_prior_cmd(
 from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # noqa: E402
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
 from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
-from f2l.face.cli import bench_faces_cmd, compare_geometry_cmd, fit_faces_cmd  # noqa: E402
+from f2l.face.cli import bench_detect_cmd, bench_faces_cmd, compare_geometry_cmd, fit_faces_cmd  # noqa: E402
 from f2l.render.cli import (eval_real_ablations_cmd, eval_real_cmd, eval_real_geometry_cmd,  # noqa: E402
                             eval_real_search_cmd, render_faces_cmd, render_skies_cmd, twin_geometry_cmd)
 
@@ -367,6 +388,7 @@ STAGE_COMMANDS = {
     "ingest": ingest_cmd, "make-probes": make_probes_cmd, "bench-capture": bench_capture_cmd,
     "calibrate": calibrate_cmd, "build-dataset": build_dataset_cmd,
     "fit-faces": fit_faces_cmd, "compare-geometry": compare_geometry_cmd, "bench-faces": bench_faces_cmd,
+    "bench-detect": bench_detect_cmd,
     "render-faces": render_faces_cmd, "render-skies": render_skies_cmd, "twin-geometry": twin_geometry_cmd, "eval-real": eval_real_cmd,
     "eval-real-geometry": eval_real_geometry_cmd, "eval-real-search": eval_real_search_cmd,
     "eval-real-ablations": eval_real_ablations_cmd,

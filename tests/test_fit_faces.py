@@ -44,8 +44,9 @@ def photo_dir(tmp_path_factory):
     Image.fromarray(skimage.data.coffee()).save(d / "coffee.png")
     (d / "broken.png").write_bytes((d / "astronaut.png").read_bytes()[:3000])
     (d / "empty.jpg").write_bytes(b"")
-    # the astronaut at 96 px: a face of ~20 px, found by the detector but too small to fit
-    Image.open(d / "astronaut.png").resize((96, 96), Image.Resampling.LANCZOS).save(d / "tiny.png")
+    # the astronaut at 200 px: a face ~36 px wide, found by the detector (it searches down to
+    # 0.8 x min_face_px) but narrower than the 40 px it may fit
+    Image.open(d / "astronaut.png").resize((200, 200), Image.Resampling.LANCZOS).save(d / "tiny.png")
     return d
 
 
@@ -149,7 +150,7 @@ def test_all_photos_failing_exits_1(photo_dir, tmp_path):
 
 
 def test_tiny_face_is_rejected_as_too_small(photo_dir, tmp_path):
-    # measured: the detector finds the 96-px astronaut, its landmarks span ~20 px (< 40)
+    # measured: the detector finds the 200-px astronaut, its face is ~36 px wide (< 40)
     res = invoke("fit-faces", photo_dir / "tiny.png", "--out", tmp_path, "--grid", GRID, "--json")
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["status"]["rejected"] == 1
@@ -158,8 +159,8 @@ def test_tiny_face_is_rejected_as_too_small(photo_dir, tmp_path):
     rejected = json.loads(row["rejected_json"])
     assert [r["reason"] for r in rejected] == ["too_small"]
     assert "tiny.png" in rejected[0]["message"] and "< 40 px" in rejected[0]["message"]
-    span = re.search(r"(\d+) px < 40 px", rejected[0]["message"])
-    assert span is not None and 10 <= int(span.group(1)) < 40
+    span = re.search(r"(\d+) px wide < 40 px", rejected[0]["message"])
+    assert span is not None and 30 <= int(span.group(1)) < 40
     assert list(iter_records(tmp_path)) == []
 
 
@@ -274,12 +275,12 @@ def test_fit_face_rejects_cut_off(grey_photo):
 def test_fit_face_rejects_too_small(grey_photo):
     lm = synthetic_landmarks(0.0)
     centre = lm[:468, :2].mean(0)
-    span = np.ptp(lm[:468, :2], axis=0).max()
+    span = np.ptp(lm[:468, 0])  # the width: this frontal face's eye line is horizontal
     lm[:, :2] = centre + (lm[:, :2] - centre) * (30.0 / span)
     lm[:, 2] *= 30.0 / span
     res = fit_face(grey_photo, lm, 0, OPTIONS)
     assert isinstance(res, Rejected) and res.reason == "too_small"
-    assert re.search(r"\b30 px < 40 px", res.message), res.message
+    assert re.search(r"\b30 px wide < 40 px", res.message), res.message
 
 
 # --- synthetic round trip ----------------------------------------------------------------------

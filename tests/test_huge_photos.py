@@ -4,6 +4,8 @@ full-resolution window), with memory near the reduced copy whatever the photo's 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import json
 import os
 import subprocess
@@ -228,8 +230,10 @@ def test_large_photo_is_detected_on_a_reduced_copy_and_fitted_at_full_resolution
 
     big_path = tmp_path / f"astronaut_x4.{ext}"
     Image.open(astronaut_png).resize((2048, 2048), Image.Resampling.NEAREST).save(big_path, quality=95)
-    options = FitOptions(grid=LatLongGrid(8, 16))
-    small = fit_photo_faces(load_photo(astronaut_png), landmarker, options)
+    # faces from 80 px in the 2048 px photo: detection may reduce it by 4, to the 512 px original,
+    # where it looks for faces from 20 px, as the original's own search does
+    options = FitOptions(grid=LatLongGrid(8, 16), min_face_px=80)
+    small = fit_photo_faces(load_photo(astronaut_png), landmarker, replace(options, min_face_px=20))
     monkeypatch.setattr(photo_mod, "DETECTION_MAX_SIDE", 512)
     photo = load_photo(big_path)
     assert isinstance(photo, StreamedPhoto)

@@ -25,9 +25,10 @@ def fit_faces_cmd(
     transport_pixels: str = typer.Option("mask", help="Pixels whose visibility is ray-traced: mask (the usable skin the estimator reads; the others keep their unshadowed front hemisphere) or all."),
     body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
     hairline: str = typer.Option("colour", help="The upper forehead's hairline band: colour (keep its pixels that have the skin's colour; f2l.face.hair), exclude (leave it out) or keep."),
+    min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face to find and fit: its width in photo pixels (cheek to cheek along the eye line). Detection time grows as its inverse square; narrower faces found on the way are refused as too_small."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Detect faces, fit a 3D face mesh, mask skin and compute transport into face-record shards."""
+    """Detect every face of each photo (any size from --min-face-px, anywhere, any number), fit a 3D face mesh, mask skin and compute transport into face-record shards."""
     from f2l.face.fit import FitOptions
     from f2l.face.landmarker import LandmarkerError
     from f2l.face.run import fit_faces
@@ -47,8 +48,11 @@ def fit_faces_cmd(
     if transport_pixels not in TRANSPORT_PIXELS:
         raise typer.BadParameter(f"must be one of {', '.join(TRANSPORT_PIXELS)}",
                                  param_hint="--transport-pixels")
+    if not 8.0 <= min_face_px <= 10_000.0:
+        raise typer.BadParameter("must be between 8 and 10000", param_hint="--min-face-px")
     options = FitOptions(resolution=resolution, grid=parse_grid(grid), depth_source=depth, threads=threads,
-                         transport_pixels=transport_pixels, body_proxy=body_proxy, hairline=hairline)
+                         transport_pixels=transport_pixels, body_proxy=body_proxy, hairline=hairline,
+                         min_face_px=min_face_px)
     try:
         summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
                             gt_probes=gt_probes, progress=not json_out)
@@ -106,3 +110,28 @@ def bench_faces_cmd(
     result = run_face_bench(faces=faces, image_size=image_size, resolution=resolution, grid=parse_grid(grid),
                             threads=threads, photos=photo)
     typer.echo(to_json(result) if json_out else format_table(result))
+
+
+def bench_detect_cmd(
+    photos: int = typer.Option(60, help="Composite photos (real faces on real backgrounds, 0.3-12 MP) for the recall table."),
+    negatives: int = typer.Option(100, help="Face-free real photos for the false-detection count."),
+    sizes_mp: str = typer.Option("1,4,12,24,50", "--sizes-mp", help="Photo sizes (megapixels, comma-separated) to time."),
+    repeats: int = typer.Option(3, help="Timed runs per size (the median is reported)."),
+    detector: str = typer.Option("full_range", help="full_range (shipped) or short_range (the landmark bundle's detector, tiled alike)."),
+    min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face searched for (px)."),
+    seed: int = typer.Option(0, help="Seed of the composites."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+) -> None:
+    """Face detection on real photographs framed wide: recall by face width, false detections per 100 face-free photos, time by photo size."""
+    from f2l.face.bench_detect import format_table, run_detect_bench
+
+    try:
+        sizes = tuple(float(v) for v in sizes_mp.split(",") if v.strip())
+    except ValueError:
+        raise typer.BadParameter("comma-separated numbers, e.g. 1,12,50", param_hint="--sizes-mp") from None
+    try:
+        result = run_detect_bench(photos=photos, negatives=negatives, sizes_mp=sizes, repeats=repeats, seed=seed,
+                                  detector=detector, min_face_px=min_face_px)
+    except (RuntimeError, ValueError) as exc:
+        fail(str(exc))
+    typer.echo(json.dumps(result) if json_out else format_table(result))

@@ -2,7 +2,7 @@
 
 For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
 
-1. reject faces that are too small (landmark box < ``min_face_px``), cut off by the frame
+1. reject faces that are too small (narrower than ``min_face_px``: :func:`face_width_px`), cut off by the frame
    (> ``max_outside_fraction`` of the landmarks outside), or in profile (|yaw| > ``max_yaw_deg``);
 2. lift the landmarks to a metric mesh (:func:`f2l.face.geometry.reconstruct_vertices`),
    Loop-subdivide it, and rasterise the working view (a square crop around the face resampled
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -54,7 +54,7 @@ class FitOptions:
     max_yaw_deg: float = 50.0
     max_outside_fraction: float = 0.02
     min_mask_pixels: int = 200
-    max_faces: int = 8
+    max_faces: int = 0  # the first so many detections (score order); 0: every face
     body_proxy: bool = False  # a neck-and-shoulders occluder posed with the head (f2l.face.body)
     # the upper forehead's hairline band (f2l.face.regions): "colour" keeps its pixels that have
     # the skin's colour (f2l.face.hair), "exclude" leaves it all out (the default until
@@ -111,6 +111,27 @@ class Rejected:
     face_index: int
     reason: str
     message: str
+    box: tuple[float, float, float, float] | None = None  # the face's landmark box, photo px
+
+
+GREYSCALE_TOLERANCE = 2e-3
+
+
+def is_greyscale(rgb: np.ndarray) -> bool:
+    """True when every pixel's channels agree to ``GREYSCALE_TOLERANCE`` of its brightest: a greyscale
+    photo (or a colourless face), which says nothing about the light's colour."""
+    rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
+    if not len(rgb):
+        return False
+    spread = rgb.max(1) - rgb.min(1)
+    return bool((spread <= GREYSCALE_TOLERANCE * np.maximum(rgb.max(1), 1e-6)).all())
+
+
+def landmark_box(landmarks: np.ndarray) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) of a face's mesh landmarks in photo px."""
+    xy = np.asarray(landmarks, np.float64)[: geometry.NUM_MESH_LANDMARKS, :2]
+    lo, hi = xy.min(0), xy.max(0)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -191,10 +212,10 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     hw = photo.shape
     lm = np.asarray(landmarks, dtype=np.float64)
     mesh_xy = lm[: geometry.NUM_MESH_LANDMARKS, :2]
-    size_px = float((mesh_xy.max(0) - mesh_xy.min(0)).max())
+    size_px = face_width_px(lm)
     if size_px < options.min_face_px:
         return Rejected(face_index, "too_small",
-                        f"face {face_index} spans {size_px:.0f} px < {options.min_face_px:.0f} px")
+                        f"face {face_index} is {size_px:.0f} px wide < {options.min_face_px:.0f} px")
     outside = _outside_fraction(mesh_xy, hw)
     if outside > options.max_outside_fraction:
         return Rejected(face_index, "cut_off", f"face {face_index}: {outside:.0%} of its "
@@ -288,14 +309,37 @@ def hairline_skin(reg: dict, rgb: np.ndarray, xy: np.ndarray, clipped: np.ndarra
     return reg["skin"] | keep, band & ~keep
 
 
-def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
-    """All faces of one photo: a list of :class:`FaceFit` or :class:`Rejected`, score order."""
+def face_width_px(landmarks: np.ndarray) -> float:
+    """A face's width in photo px: the extent of its mesh landmarks along the eye line
+    (landmark 33 → 263), so a tilted head measures as an upright one. The width is what
+    ``min_face_px`` and the detector's bands count (a frontal face's detection box is as wide)."""
+    xy = np.asarray(landmarks, np.float64)[: geometry.NUM_MESH_LANDMARKS, :2]
+    axis = xy[263] - xy[33]
+    norm = float(np.hypot(*axis))
+    axis = axis / norm if norm > 0 else np.array([1.0, 0.0])
+    along = xy @ axis
+    return float(along.max() - along.min())
+
+
+def detection_max_side(shape: tuple[int, int], min_face_px: float) -> int:
+    """Long side of the copy faces are detected on: ``DETECTION_MAX_SIDE``, or more where an integer
+    box reduction to it would shrink a ``min_face_px`` face below the detector's band (a 50 MP
+    photo at the default 40 px is reduced by 2, not 3)."""
+    from f2l.face.detector import FULL_RANGE
     from f2l.face.photo import DETECTION_MAX_SIDE
 
+    long_side = max(int(shape[0]), int(shape[1]))
+    factor = max(1, int(float(min_face_px) // FULL_RANGE.band_px[0]))
+    return max(DETECTION_MAX_SIDE, math.ceil(long_side / factor))
+
+
+def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
+    """All faces of one photo: a list of :class:`FaceFit` or :class:`Rejected`, score order."""
     t0 = time.perf_counter()
-    # a large photo: a reduced copy, where position p is offset + p / scale in the photo
-    image, scale, offset = photo.detection_image(DETECTION_MAX_SIDE)
-    found = landmarker(image, max_faces=options.max_faces)
+    # a large photo: a reduced copy, where position p is offset + p / scale in the photo; reduced
+    # no further than keeps a min_face_px face inside the detector's band
+    image, scale, offset = photo.detection_image(detection_max_side(photo.shape, options.min_face_px))
+    found = landmarker(image, max_faces=options.max_faces or None, min_face_px=options.min_face_px * scale)
     del image
     landmarks_s = (time.perf_counter() - t0) / max(1, len(found))
     found_points = []
@@ -317,6 +361,8 @@ def fit_photo_faces(photo, landmarker, options: FitOptions = FitOptions()):
         fit = fit_face(photo, points, i, options, lms.detection.score, lms.presence)
         if isinstance(fit, FaceFit):
             fit.timings["landmarks_s"] = round(landmarks_s, 4)
+        else:
+            fit = replace(fit, box=landmark_box(points))
         out.append(fit)
     return out
 
@@ -346,6 +392,7 @@ def face_record(fit: FaceFit, photo, face_id: str, options: FitOptions, *,
                       "untraced_bits": "front-facing hemisphere, no self-shadowing"},
         "exif": photo.exif,
         "photo_kind": photo.kind,
+        "greyscale": is_greyscale(fit.observed_rgb),
     }
     r = fit.view.resolution
     return FaceRecord(

@@ -1,19 +1,23 @@
-"""Offline face detection and 478-point 3D landmarks: MediaPipe's FaceLandmarker models on LiteRT.
+"""Offline face detection and 478-point 3D landmarks: MediaPipe's models on LiteRT.
 
-The pinned ``face_landmarker.task`` bundle (see :mod:`f2l.synth.facemesh`) holds two TFLite
-models that ``ai-edge-litert`` runs directly, without the ``mediapipe`` package (which declares
-the GUI ``opencv-contrib-python`` and so fights ``opencv-contrib-python-headless`` for ``cv2``):
+``ai-edge-litert`` runs MediaPipe's TFLite models directly, without the ``mediapipe`` package
+(which declares the GUI ``opencv-contrib-python`` and so fights ``opencv-contrib-python-headless``
+for ``cv2``):
 
-* ``face_detector.tflite`` — BlazeFace short range: a 128×128 RGB input in [-1, 1] (the photo
-  letterboxed), 896 SSD anchors (strides 8, 16, 16, 16; fixed anchor size), 16 regressors per
-  anchor (box centre/size + 6 keypoints: right eye, left eye, nose tip, mouth, right and left
-  tragion, "right" meaning the subject's right) in units of input pixels, and a logit score.
-  Detections above ``min_score`` are merged by weighted non-maximum suppression (IoU 0.3).
-* ``face_landmarks_detector.tflite`` — a 256×256 RGB crop in [0, 1] → 478 (x, y, z) in crop
+* detection — BlazeFace *full range* (``f2l/data/face_detection_full_range.tflite``, pinned by
+  SHA-256, Apache-2.0): a 192×192 RGB input in [-1, 1], 2,304 anchors, 16 regressors per anchor
+  (box centre/size + 6 keypoints: right eye, left eye, nose tip, mouth, right and left tragion,
+  "right" meaning the subject's right) in input pixels, and a logit score. It is run over a
+  pyramid of windows (:mod:`f2l.face.detector`), so faces from ``min_face_px`` wide to the whole
+  frame are found anywhere in the photo, as many as there are. (Until 2026-11-27 the whole photo
+  was letterboxed into the bundle's short-range 128×128 detector, which lost every face under
+  about a fifth of the long side; ``docs/experiments/face_detection.md`` compares the two.)
+* ``face_landmarks_detector.tflite`` of the pinned ``face_landmarker.task`` bundle (see
+  :mod:`f2l.synth.facemesh`) — a 256×256 RGB crop in [0, 1] → 478 (x, y, z) in crop
   pixels (468 face-mesh points + 10 iris points) and a face-presence logit. The crop is the
   square around the detection box scaled ×1.5 and rotated so that the eyes are level; a second
   pass re-crops around the first pass's landmarks (MediaPipe's tracking ROI, rotation from
-  landmarks 33 → 263), which tightens the fit.
+  landmarks 33 → 263), which tightens the fit. The presence score also vets the detector's hits.
 
 Landmarks are returned in photo pixels (x right, y down, pixel centres at +0.5) with z in the
 same pixel scale, smaller = nearer the camera (MediaPipe's convention).
@@ -32,30 +36,26 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.face.detector import FULL_RANGE, Detection, TiledDetector, iou
+
 _log = logging.getLogger(__name__)
 
-DETECTOR_MEMBER = "face_detector.tflite"
 LANDMARKS_MEMBER = "face_landmarks_detector.tflite"
-DETECTOR_SIZE = 128
+DETECTOR_FILE = "face_detection_full_range.tflite"
+DETECTOR_SHA256 = "99bf9494d84f50acc6617d89873f71bf6635a841ea699c17cb3377f9507cfec3"
+DETECTOR_ENV_VAR = "F2L_FACE_DETECTOR"
+MIN_FACE_PX = 40.0
+# two detections whose landmark boxes overlap this much are one face (the higher presence kept)
+DUPLICATE_IOU = 0.5
 LANDMARKS_SIZE = 256
 NUM_LANDMARKS = 478
 ROI_SCALE = 1.5
-NMS_IOU = 0.3
 # Eye-corner landmarks that define the tracking ROI's rotation (subject's right -> left).
 ROI_ROTATION_LANDMARKS = (33, 263)
 
 
 class LandmarkerError(RuntimeError):
     """The LiteRT runtime or the landmarker models are unavailable or unreadable."""
-
-
-@dataclass(frozen=True)
-class Detection:
-    """A BlazeFace detection in photo pixels: box (x0, y0, x1, y1), 6 keypoints (6, 2), score."""
-
-    box: np.ndarray
-    keypoints: np.ndarray
-    score: float
 
 
 @dataclass(frozen=True)
@@ -100,17 +100,43 @@ def _native_stderr_to_debug_log():
     return native_stderr_lines(handle)
 
 
+def default_detector_path() -> Path:
+    """The detector model: ``$F2L_FACE_DETECTOR`` or f2l's packaged copy."""
+    from importlib import resources
+
+    env = os.environ.get(DETECTOR_ENV_VAR)
+    if env:
+        return Path(env)
+    return Path(str(resources.files("f2l.data").joinpath(DETECTOR_FILE)))
+
+
+def _model_bytes(path: Path, check_sha256: bool) -> bytes:
+    import hashlib
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise LandmarkerError(f"{path}: cannot read the face detector model: {exc.strerror or exc}") from exc
+    if check_sha256:
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != DETECTOR_SHA256:
+            raise LandmarkerError(f"{path}: SHA-256 mismatch (got {digest}, expected {DETECTOR_SHA256}); "
+                                  "this is not the pinned BlazeFace full-range model")
+    return data
+
+
 @lru_cache(maxsize=4)
-def _interpreters(task_path: str, check_sha256: bool, threads: int):
+def _interpreters(task_path: str, detector_path: str, check_sha256: bool, threads: int):
     from f2l.synth.facemesh import canonical_face_mesh
 
     canonical_face_mesh(task_path, check_sha256=check_sha256)  # verifies the pin
+    detector_bytes = _model_bytes(Path(detector_path), check_sha256)
     Interpreter = _interpreter_class()
     out = []
     try:
         with zipfile.ZipFile(task_path) as zf, _native_stderr_to_debug_log():
-            for member in (DETECTOR_MEMBER, LANDMARKS_MEMBER):
-                it = Interpreter(model_content=zf.read(member), num_threads=int(threads))
+            for content in (detector_bytes, zf.read(LANDMARKS_MEMBER)):
+                it = Interpreter(model_content=content, num_threads=int(threads))
                 it.allocate_tensors()
                 out.append(it)
     except (zipfile.BadZipFile, KeyError, ValueError, RuntimeError) as exc:
@@ -121,55 +147,32 @@ def _interpreters(task_path: str, check_sha256: bool, threads: int):
 class FaceLandmarker:
     """Detect faces and their 478 landmarks in an 8-bit RGB photo (H, W, 3) uint8.
 
-    ``task_path`` overrides the bundle (default: ``$F2L_FACE_LANDMARKER`` or f2l's packaged copy);
-    its SHA-256 must match the pin unless ``check_sha256=False``.
+    ``task_path`` overrides the landmark bundle (default: ``$F2L_FACE_LANDMARKER`` or f2l's
+    packaged copy), ``detector_path`` the detector (``$F2L_FACE_DETECTOR`` or the packaged copy);
+    their SHA-256 must match the pins unless ``check_sha256=False``.
     """
 
     def __init__(self, task_path: str | os.PathLike | None = None, *, check_sha256: bool = True,
-                 threads: int = 1, min_score: float = 0.5, min_presence: float = 0.5,
-                 refine_passes: int = 1) -> None:
+                 threads: int = 1, min_score: float | None = None, min_presence: float = 0.5,
+                 refine_passes: int = 1, detector_path: str | os.PathLike | None = None) -> None:
         from f2l.synth.facemesh import default_task_path
 
         path = Path(task_path) if task_path is not None else default_task_path()
         self.task_path = path.resolve()
-        self.detector, self.landmarks_model = _interpreters(str(self.task_path), check_sha256,
-                                                            int(threads))
-        self.min_score = float(min_score)
+        det_path = Path(detector_path) if detector_path is not None else default_detector_path()
+        self.detector_path = det_path.resolve()
+        self.detector, self.landmarks_model = _interpreters(str(self.task_path), str(self.detector_path),
+                                                            check_sha256, int(threads))
+        self.tiled = TiledDetector(self.detector, FULL_RANGE, min_score=min_score)
+        self.min_score = self.tiled.min_score
         self.min_presence = float(min_presence)
         self.refine_passes = int(refine_passes)
-        self._anchors = ssd_anchors()
 
     # -- detection ---------------------------------------------------------------------------
-    def detect(self, image: np.ndarray) -> list[Detection]:
-        """BlazeFace detections, highest score first, in photo pixels."""
-        image = _check_image(image)
-        h, w = image.shape[:2]
-        side = max(h, w)
-        # letterbox: the photo centred in a square of side `side`, scaled to 128
-        scale = DETECTOR_SIZE / side
-        pad_x, pad_y = (side - w) / 2.0, (side - h) / 2.0
-        affine = np.array([[1.0 / scale, 0.0, -pad_x], [0.0, 1.0 / scale, -pad_y]])
-        inp = _warp(image, affine, DETECTOR_SIZE).astype(np.float32) / 127.5 - 1.0
-        det = self.detector
-        det.set_tensor(det.get_input_details()[0]["index"], inp[None])
-        det.invoke()
-        outs = {d["name"]: det.get_tensor(d["index"]) for d in det.get_output_details()}
-        reg = outs["regressors"][0].astype(np.float64)
-        logits = np.clip(outs["classificators"][0, :, 0].astype(np.float64), -100.0, 100.0)
-        scores = 1.0 / (1.0 + np.exp(-logits))
-        keep = scores >= self.min_score
-        if not keep.any():
-            return []
-        reg, scores, anchors = reg[keep], scores[keep], self._anchors[keep]
-        # decode in normalised letterbox units, then to photo pixels
-        centre = reg[:, 0:2] / DETECTOR_SIZE + anchors
-        size = reg[:, 2:4] / DETECTOR_SIZE
-        boxes = np.concatenate([centre - size / 2, centre + size / 2], axis=1)
-        kps = reg[:, 4:16].reshape(-1, 6, 2) / DETECTOR_SIZE + anchors[:, None, :]
-        to_px = np.array([side, side]), np.array([pad_x, pad_y])
-        boxes = boxes * np.tile(to_px[0], 2) - np.tile(to_px[1], 2)
-        kps = kps * to_px[0] - to_px[1]
-        return _weighted_nms(boxes, kps, scores, NMS_IOU)
+    def detect(self, image: np.ndarray, min_face_px: float = MIN_FACE_PX) -> list[Detection]:
+        """Detections of faces at least ``min_face_px`` wide (about: the band's slack lets a few
+        narrower ones through), anywhere in the photo, highest score first, in photo pixels."""
+        return self.tiled(_check_image(image), min_face_px=min_face_px)
 
     # -- landmarks ---------------------------------------------------------------------------
     def landmarks(self, image: np.ndarray, detection: Detection) -> FaceLandmarks:
@@ -205,36 +208,31 @@ class FaceLandmarker:
         z = raw[:, 2] * k
         return np.concatenate([xy, z[:, None]], axis=1), presence
 
-    def __call__(self, image: np.ndarray, max_faces: int = 8) -> list[FaceLandmarks]:
-        """Landmarks of every detected face whose presence passes ``min_presence``."""
-        out = []
-        for det in self.detect(image)[:max_faces]:
+    def __call__(self, image: np.ndarray, max_faces: int | None = None,
+                 min_face_px: float = MIN_FACE_PX) -> list[FaceLandmarks]:
+        """Landmarks of every detected face whose presence passes ``min_presence`` (detection
+        score order; two detections that land on one face count once; ``max_faces``: the first
+        so many, ``None`` or 0 for all)."""
+        image = _check_image(image)
+        out: list[FaceLandmarks] = []
+        boxes: list[np.ndarray] = []
+        for det in self.detect(image, min_face_px=min_face_px):
+            if max_faces and len(out) >= max_faces:
+                break
             lms = self.landmarks(image, det)
-            if lms.presence >= self.min_presence:
-                out.append(lms)
+            if lms.presence < self.min_presence:
+                continue
+            box = np.concatenate([lms.points[:, :2].min(0), lms.points[:, :2].max(0)])
+            if boxes and (iou(box, np.array(boxes)) > DUPLICATE_IOU).any():
+                continue
+            boxes.append(box)
+            out.append(lms)
         return out
 
 
 # ---------------------------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------------------------
-def ssd_anchors() -> np.ndarray:
-    """The 896 BlazeFace short-range anchor centres (normalised [0, 1], x then y).
-
-    SSD layers with strides 8, 16, 16, 16 on a 128² input; layers of equal stride share a feature
-    map, 2 anchors per layer per cell (aspect ratio 1 and the interpolated scale); fixed anchor
-    size, so only centres matter: 16·16·2 + 8·8·6 = 896.
-    """
-    out = []
-    for stride, per_cell in ((8, 2), (16, 6)):
-        n = DETECTOR_SIZE // stride
-        c = (np.arange(n) + 0.5) / n
-        yy, xx = np.meshgrid(c, c, indexing="ij")
-        cells = np.stack([xx.ravel(), yy.ravel()], axis=1)
-        out.append(np.repeat(cells, per_cell, axis=0))
-    return np.concatenate(out, axis=0)
-
-
 def _check_image(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
@@ -271,32 +269,3 @@ def _roi_from_landmarks(points: np.ndarray):
     centre = centre_local @ rot  # back to photo frame
     size = float(max(hi - lo)) * ROI_SCALE
     return float(centre[0]), float(centre[1]), size, rotation
-
-
-def _iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    x0 = np.maximum(box[0], boxes[:, 0])
-    y0 = np.maximum(box[1], boxes[:, 1])
-    x1 = np.minimum(box[2], boxes[:, 2])
-    y1 = np.minimum(box[3], boxes[:, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area = lambda b: (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])  # noqa: E731
-    return inter / np.maximum(area(box) + area(boxes) - inter, 1e-12)
-
-
-def _weighted_nms(boxes, keypoints, scores, iou_threshold: float) -> list[Detection]:
-    """MediaPipe's WEIGHTED non-maximum suppression: each cluster (IoU > threshold with its
-    best member) becomes the score-weighted mean of its boxes and keypoints."""
-    order = np.argsort(-scores)
-    remaining = list(order)
-    out = []
-    while remaining:
-        best = remaining[0]
-        rest = np.array(remaining)
-        overlap = _iou(boxes[best], boxes[rest]) > iou_threshold
-        members = rest[overlap]
-        w = scores[members] / scores[members].sum()
-        out.append(Detection(box=(w[:, None] * boxes[members]).sum(0),
-                             keypoints=(w[:, None, None] * keypoints[members]).sum(0),
-                             score=float(scores[best])))
-        remaining = [int(i) for i in rest[~overlap]]
-    return out

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-__all__ = ["render_overlay", "write_overlay", "overlay_layout", "colormap",
+__all__ = ["render_overlay", "write_overlay", "render_photo_overlay", "write_photo_overlay", "overlay_layout", "colormap",
            "PANEL_LABELS", "REASON_COLOURS", "CAPTION_H", "PAD", "TINT_ALPHA"]
 
 NUM_LANDMARKS = 478
@@ -138,7 +138,45 @@ def render_overlay(crop, landmarks_xy, triangles, pixel_rc, normals, mask, exclu
 
 def write_overlay(path: str | os.PathLike, **kwargs) -> None:
     """Render with :func:`render_overlay` and write a PNG atomically (``<path>.<pid>.tmp`` + rename)."""
-    image = render_overlay(**kwargs)
+    _write_png(path, render_overlay(**kwargs))
+
+
+KEPT_COLOUR = (60, 220, 90)
+REFUSED_COLOUR = (235, 70, 60)
+
+
+def render_photo_overlay(display: np.ndarray, scale: float, faces: list[tuple], title: str = "") -> np.ndarray:
+    """The whole photo with every detected face: ``faces`` holds (box (x0, y0, x1, y1) in photo px,
+    label, kept); kept faces are framed green, refused ones red, each labelled (its index and
+    face id or refusal reason). ``display`` is the photo (or a reduced copy: photo px × ``scale``
+    = its px); a title strip above it names the photo."""
+    img = Image.fromarray(np.ascontiguousarray(display)).convert("RGB")
+    width = max(1, round(img.width))
+    canvas = Image.new("RGB", (width, img.height + LINE_H + 6), (BACKGROUND,) * 3)
+    canvas.paste(img, (0, LINE_H + 6))
+    draw = ImageDraw.Draw(canvas)
+    font = _font()
+    draw.text((4, 3), title, fill=(230, 230, 230), font=font)
+    line = max(1, round(min(img.width, img.height) / 400))
+    for box, label, kept in faces:
+        x0, y0, x1, y1 = (float(v) * scale for v in box)
+        y0, y1 = y0 + LINE_H + 6, y1 + LINE_H + 6
+        colour = KEPT_COLOUR if kept else REFUSED_COLOUR
+        draw.rectangle((x0, y0, x1, y1), outline=colour, width=line)
+        tw = draw.textlength(label, font=font)
+        ty = y0 - LINE_H - 1 if y0 - LINE_H - 1 >= LINE_H + 6 else y1 + 1
+        draw.rectangle((x0, ty, x0 + tw + 4, ty + LINE_H), fill=(0, 0, 0))
+        draw.text((x0 + 2, ty), label, fill=colour, font=font)
+    return np.asarray(canvas)
+
+
+def write_photo_overlay(path: str | os.PathLike, display: np.ndarray, scale: float, faces: list[tuple],
+                        title: str = "") -> None:
+    """:func:`render_photo_overlay` written as a PNG atomically."""
+    _write_png(path, render_photo_overlay(display, scale, faces, title))
+
+
+def _write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     path = Path(path)
     tmp = Path(f"{path}.{os.getpid()}.tmp")
     try:

@@ -5,6 +5,7 @@ Output directory layout (a shard directory that ``f2l estimate`` reads)::
     OUT/part-00000.parquet        face records (schema face_record), one row group per face
     OUT/photos/<face_id>.png      the working-resolution crop that pixel_rc refers to
     OUT/overlays/<face_id>.png    debug overlay (landmarks + mesh, normals, mask, sky visibility)
+    OUT/overlays/<photo>.png      the whole photo, every detected face framed: kept or refused (why)
     OUT/probes/<face_id>.exr      ground-truth probe, when --gt-probes holds <photo stem>.exr
     OUT/status/fit_faces.parquet  one row per photo (schema photo_status)
 
@@ -67,6 +68,32 @@ def _overlay(out: Path, fid: str, fit: FaceFit, options: FitOptions) -> str:
     return rel
 
 
+OVERLAY_MAX_SIDE = 1600
+
+
+def _photo_overlay(out: Path, path: Path, sha: str, photo, fits, records) -> str:
+    """``overlays/<photo stem>-<sha10>.png``: the photo (reduced to ``OVERLAY_MAX_SIDE``) with every
+    detected face framed, kept (green, its index) or refused (red, the reason)."""
+    from f2l.face.fit import landmark_box
+    from f2l.face.overlay import write_photo_overlay
+
+    display, scale, offset = photo.detection_image(OVERLAY_MAX_SIDE)
+    ids = {r.face_index: r.face_id for r, _ in records}
+    faces = []
+    for fit in fits:
+        if isinstance(fit, FaceFit):
+            faces.append((landmark_box(fit.landmarks), f"f{fit.face_index}", fit.face_index in ids))
+        elif fit.box is not None:
+            faces.append((fit.box, f"f{fit.face_index} {fit.reason}", False))
+    faces = [((np.asarray(b) - np.tile(offset, 2)), label, kept) for b, label, kept in faces]
+    rel = f"overlays/{face_id(path, sha, 0).rsplit('-f', 1)[0]}.png"
+    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    kept = sum(k for _, _, k in faces)
+    write_photo_overlay(out / rel, display, scale, faces,
+                        title=f"{path.name}: {len(fits)} face(s) detected, {kept} kept, {len(fits) - kept} refused")
+    return rel
+
+
 def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None, grid) -> str | None:
     """Attach ``gt_dir/<photo stem>.exr``, area-resampled to the record's lighting grid."""
     if gt_dir is None:
@@ -112,7 +139,7 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
         for path in iterator:
             t0 = time.perf_counter()
             row = {"source_path": str(path), "sha256": "", "num_detected": 0, "face_ids": [],
-                   "rejected_json": "[]"}
+                   "rejected_json": "[]", "overlay_path": None}
             try:
                 if not path.is_file():
                     raise PhotoError(path, "no such file")
@@ -134,6 +161,8 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                     if overlays:
                         record.meta["overlay_path"] = _overlay(out, fid, fit, options)
                     records.append((record, sum(fit.timings.values())))
+                if overlays and fits:
+                    row["overlay_path"] = _photo_overlay(out, path, sha, photo, fits, records)
                 # a photo's records are written together, after all its faces succeeded
                 for record, seconds in records:
                     writer.write(record)
@@ -142,6 +171,10 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                 row["rejected_json"] = json.dumps(rejected)
                 if row["face_ids"]:
                     row["status"], row["message"] = "ok", f"{path}: {len(row['face_ids'])} face(s)"
+                    if rejected:
+                        row["message"] += f", {len(rejected)} refused"
+                    if any(r.meta.get("greyscale") for r, _ in records):
+                        row["message"] += "; greyscale: it says nothing about the light's colour"
                 elif fits:
                     row["status"] = "rejected"
                     row["message"] = "; ".join(r["message"] for r in rejected)

@@ -28,8 +28,10 @@ from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import relative_message
 
 CALIBRATE_VERSION = 1
-FIT_VERSION = 3  # 2: large photos detected on a reduced copy, fitted from full-resolution windows;
-# 3: clipped skin pixels get traced visibility (the estimator reads them as censored observations)
+FIT_VERSION = 4  # 2: large photos detected on a reduced copy, fitted from full-resolution windows;
+# 3: clipped skin pixels get traced visibility (the estimator reads them as censored observations);
+# 4: faces at every scale (BlazeFace full range over a pyramid of windows), every face of a photo,
+# the face width along the eye line, a whole-photo overlay
 
 
 def _rounded(stats: dict) -> dict:
@@ -88,11 +90,12 @@ def fit_options(fit: dict, transport: dict, grid_hw: tuple[int, int]):
 
 
 def fit_key(row: dict, fit: dict, transport: dict, grid_hw: tuple[int, int]) -> str:
+    from f2l.face.landmarker import DETECTOR_SHA256
     from f2l.synth.facemesh import FACE_LANDMARKER_SHA256
 
     return stage_key("fit-faces", FIT_VERSION,
                      {"path": row["path"], "sha256": row["sha256"],
-                      "landmarker_sha256": FACE_LANDMARKER_SHA256},
+                      "landmarker_sha256": FACE_LANDMARKER_SHA256, "detector_sha256": DETECTOR_SHA256},
                      {"fit-faces": fit, "transport": transport, "grid": list(grid_hw)})
 
 
@@ -125,7 +128,7 @@ class FaceFitter:
     def _produce(self, tmp: Path, row: dict, timings: dict) -> dict:
         from f2l.face.fit import FaceFit, face_record, fit_photo_faces
         from f2l.face.photo import load_photo
-        from f2l.face.run import _overlay, face_id
+        from f2l.face.run import _overlay, _photo_overlay, face_id
         from f2l.io.shards import ShardWriter, write_side_photo
 
         t0 = time.perf_counter()
@@ -136,6 +139,7 @@ class FaceFitter:
             photo = load_photo(self.root / rel)
             fits = fit_photo_faces(photo, self.landmarker(), self.options)
             out["num_detected"] = len(fits)
+            written: list = []
             with ShardWriter(tmp, records_per_shard=max(1, len(fits))) as writer:
                 for fit in fits:
                     if not isinstance(fit, FaceFit):
@@ -151,6 +155,9 @@ class FaceFitter:
                         record.meta["overlay_path"] = _overlay(tmp, fid, fit, self.options)
                     writer.write(record)
                     out["face_ids"].append(fid)
+                    written.append((record, 0.0))
+            if self.fit["overlays"] and fits:
+                out["overlay_path"] = _photo_overlay(tmp, Path(rel), row["sha256"], photo, fits, written)
             if out["face_ids"]:
                 out["status"] = "ok"
                 out["message"] = f"{rel}: {len(out['face_ids'])} face(s)"
