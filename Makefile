@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths bench bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -40,8 +40,24 @@ test-cpu-paths: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/f2l bench --faces 1
 
+# Face detection on real photographs framed wide (docs/experiments/face_detection.md): recall by face
+# width, false detections per 100 face-free photos, time by photo size (~1 min on 2 cores)
+bench-detect: $(STAMP)
+	$(BIN)/f2l bench-detect
+
 bench-faces: $(STAMP)
 	$(BIN)/f2l bench-faces --faces 6
+
+# Face detection on path-traced photos framed wide (f2l/render/framing.py): 30 half-body, 30 full-body and 40
+# group photos (2-5 people; ~200 faces in all) at 1280 px and 16 spp, then recall by face width and framing
+# (f2l bench-detect --rendered; docs/experiments/face_detection.md). ~40 min on 2 cores; resumable.
+EVAL_FRAMINGS := build/eval_framings
+eval-framings: $(STAMP)
+	$(BIN)/f2l render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l render-faces --framing full --out $(EVAL_FRAMINGS)/full --n 30 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l render-faces --framing group --out $(EVAL_FRAMINGS)/group --n 40 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l bench-detect --rendered $(EVAL_FRAMINGS)/half --rendered $(EVAL_FRAMINGS)/full \
+		--rendered $(EVAL_FRAMINGS)/group
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)

@@ -160,10 +160,6 @@ def estimate(
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
     faces already estimated with the same model, version and settings."""
-    from f2l.estimate.runner import run_estimates
-    from f2l.estimate.ray_executor import ExecutorUnavailable
-    from f2l.models.registry import ModelNotFoundError
-
     from f2l.pipeline.photos import fit_photos, is_photo_input
 
     missing = [str(s) for s in shards if not Path(s).exists()]
@@ -185,6 +181,10 @@ def estimate(
         if not shards:
             reasons = "; ".join(r["message"] for r in fitted["photos"][:5])
             _fail(f"no usable face in {len(fitted['photos'])} photo(s): {reasons}")
+    from f2l.estimate.ray_executor import ExecutorUnavailable
+    from f2l.estimate.runner import run_estimates
+    from f2l.models.registry import ModelNotFoundError
+
     try:
         summary = run_estimates(
             shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,

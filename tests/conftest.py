@@ -1,9 +1,16 @@
+import os
+import tempfile
+
 import numpy as np
 import pytest
 
 from f2l.lighting.grid import LatLongGrid
 
 SMALL_GRID = LatLongGrid(32, 64)
+
+# f2l's per-user cache (the registry's capability-check stamps) in a folder of this run's own, so
+# the suite neither reads nor writes ~/.cache/f2l (subprocesses inherit it)
+os.environ.setdefault("F2L_CACHE_DIR", tempfile.mkdtemp(prefix="f2l-test-cache-"))
 
 
 @pytest.fixture(scope="session")

@@ -53,3 +53,14 @@ def test_other_models_keep_the_general_weight():
     cfg = dataclasses.replace(EstimatorConfig(), threads=1, sun_albedo_prior_weight=0.5)
     assert FaceProblem(obs, load_model("sunsky", GRID), cfg).albedo_prior_weight == 0.5
     assert FaceProblem(obs, load_model("sh9", GRID), cfg).albedo_prior_weight == cfg.albedo_prior_weight
+
+
+def test_the_shipped_skin_albedo_gmm_is_the_fit():
+    """f2l/data/skin_albedo_gmm.json holds what fit_skin_albedo_gmm() gives (exactly on the machine
+    that wrote it; to rounding elsewhere)."""
+    from f2l.estimate.skin import GMM_FILE, fit_skin_albedo_gmm, skin_albedo_gmm
+
+    assert GMM_FILE.is_file()
+    shipped, fresh = skin_albedo_gmm(), fit_skin_albedo_gmm()
+    for key in ("weights", "means", "covariances"):
+        np.testing.assert_allclose(shipped[key], fresh[key], rtol=1e-9, atol=1e-12)

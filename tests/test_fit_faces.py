@@ -454,3 +454,19 @@ def test_transport_traced_on_the_mask_only(grey_photo):
     assert rec_meta["fit"]["transport_pixels"] == "mask"
     with pytest.raises(ValueError, match="transport_pixels"):
         fit_face(grey_photo, lm, 0, FitOptions(resolution=64, grid=grid, transport_pixels="skin"))
+
+
+@pytest.mark.parametrize("hw", [(64, 128), (8, 16), (6, 6), (2, 6)])
+def test_sky_visibility_from_packed_bits_equals_the_unpacked_sum(hw):
+    """The overlay's sky-visibility fraction, read from the packed bits by a per-byte table, is the
+    solid-angle-weighted mean of the unpacked upper-hemisphere bits (also where a byte straddles
+    the horizon: 6 x 6 and 2 x 6 grids)."""
+    from f2l.face.fit import sky_visibility
+    from f2l.io.shards import unpack_visibility
+
+    grid = LatLongGrid(*hw)
+    bits = np.random.default_rng(1).integers(0, 256, (300, -(-grid.size // 8)), dtype=np.uint8)
+    vis = unpack_visibility(bits, grid.size).reshape(300, *hw)[:, : hw[0] // 2]
+    sa = grid.solid_angles.reshape(hw)[: hw[0] // 2]
+    np.testing.assert_allclose(sky_visibility(bits, grid), (vis * sa).sum((1, 2)) / sa.sum(), rtol=0, atol=1e-14)
+    assert sky_visibility(np.full((1, bits.shape[1]), 255, np.uint8), grid)[0] == pytest.approx(1.0, abs=1e-14)

@@ -116,3 +116,12 @@ def test_contact_sheet_dims():
     assert long.shape[1] > 16 + 4
     with pytest.raises(ValueError):
         contact_sheet([])
+
+
+def test_srgb_encoding_is_colour_sciences():
+    import colour
+
+    from f2l.io.preview import srgb_encode
+
+    v = np.concatenate([np.linspace(0.0, 1.0, 4097), [0.0031308, 0.0031307, 0.0031309, 1e-9]])
+    np.testing.assert_allclose(srgb_encode(v), colour.cctf_encoding(v, function="sRGB"), rtol=0, atol=1e-12)

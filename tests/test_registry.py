@@ -2,6 +2,7 @@ import json
 import subprocess
 
 import numpy as np
+import pytest
 import torch
 
 from f2l.lighting.grid import LatLongGrid
@@ -52,3 +53,36 @@ def test_unknown_model_message():
 
     with pytest.raises(ModelNotFoundError, match="unknown lighting model 'nope'.*sh9"):
         load_model("nope", LatLongGrid(8, 16))
+
+
+def test_a_passed_capability_check_is_remembered_across_processes(tmp_path, monkeypatch):
+    """The numeric check runs once per model, grid size and code: a stamp under $F2L_CACHE_DIR
+    lets the next process skip it; another cache (or another code) runs it again."""
+    import f2l.models.capabilities as capabilities
+    import f2l.models.registry as registry
+    from f2l.lighting.grid import LatLongGrid
+
+    grid = LatLongGrid(8, 16)
+    monkeypatch.setenv("F2L_CACHE_DIR", str(tmp_path / "a"))
+    monkeypatch.setattr(registry, "_CHECKED", set())
+    calls = []
+    real = registry.check_model
+    monkeypatch.setattr(registry, "check_model", lambda m: (calls.append(m.name), real(m)))
+    registry.load_model("sunsky", grid)
+    assert calls == ["sunsky"]
+    stamp = registry.check_stamp(registry.discover()["sunsky"], grid)
+    assert stamp.is_file() and stamp.parent.parent == tmp_path / "a"
+    monkeypatch.setattr(registry, "_CHECKED", set())  # a new process
+    registry.load_model("sunsky", grid)
+    assert calls == ["sunsky"]
+    assert registry.check_stamp(registry.discover()["sunsky"], LatLongGrid(16, 32)) != stamp
+    monkeypatch.setenv("F2L_CACHE_DIR", str(tmp_path / "b"))  # nothing remembered there
+    monkeypatch.setattr(registry, "_CHECKED", set())
+
+    def refuse(model):
+        raise capabilities.CapabilityError("refused on purpose")
+
+    monkeypatch.setattr(registry, "check_model", refuse)
+    with pytest.raises(registry.ModelNotFoundError, match="refused on purpose"):
+        registry.load_model("sunsky", grid)
+    assert not (tmp_path / "b" / registry.STAMP_DIR).exists() or not any((tmp_path / "b" / registry.STAMP_DIR).iterdir())

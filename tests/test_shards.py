@@ -78,7 +78,7 @@ def write_raw(table: pa.Table, path: Path) -> None:
 @pytest.mark.parametrize("name", ["face_record", "estimates"])
 def test_schema_files_are_complete(name):
     schema = load_schema(name)
-    assert schema["x-schema-version"] == 1
+    assert schema["x-schema-version"] == {"face_record": 1, "estimates": 2}[name]  # estimates v2: the absolute scale
     assert set(schema["required"]) == set(schema["properties"])
     for col, prop in schema["properties"].items():
         assert "type" in prop and "description" in prop and "x-arrow-type" in prop, col
@@ -301,6 +301,7 @@ def estimate_row(face_id: str, status: str = "ok", **over) -> dict:
         "probe_path": f"probes/{face_id}.exr", "preview_path": None,
         "grid_height": 64, "grid_width": 128, "config_hash": "abc123",
         "timings_json": json.dumps({"fit": 3.0}),
+        "absolute_scale_cd_m2": None, "absolute_scale_source": "relative (no absolute scale: the record holds no EXIF)",
     }
     row.update(over)
     return row

@@ -335,3 +335,12 @@ def test_without_a_prior_the_placeholder_starts_are_used(monkeypatch, tmp_path):
     lo, hi = model.bounds()
     assert starts.shape == (8, 10) and np.all((starts >= lo) & (starts <= hi))
     assert torch.all(model.prior_nll(torch.as_tensor(starts)) == 0.0)
+
+
+def test_the_rec709_matrix_is_colour_sciences_bit_for_bit():
+    import colour
+
+    from f2l_builtin_models.sunsky import XYZ_TO_REC709
+
+    want = np.asarray(colour.RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB, dtype=np.float64)
+    assert np.array_equal(np.asarray(XYZ_TO_REC709, dtype=np.float64), want)

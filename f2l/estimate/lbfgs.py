@@ -2,9 +2,32 @@
 
 from __future__ import annotations
 
+import sys
+
 import torch
 
 from f2l.estimate.config import EstimatorConfig
+
+
+def _without_dynamo_import() -> None:
+    """torch.optim wraps its optimisers' methods in ``torch._disable_dynamo``, whose wrapper imports
+    ``torch._dynamo`` (about 1 s, most of a cold ``f2l estimate`` past torch itself) on the first
+    call only to mark the method as not to be compiled. f2l never compiles, so while
+    ``torch._dynamo`` is not loaded, each such wrapped method of ``torch.optim.LBFGS`` is marked
+    with itself as its "disabled" form, which is what the wrapper caches after that import. Once
+    anything has imported ``torch._dynamo``, torch's own path is left alone."""
+    if "torch._dynamo" in sys.modules:
+        return
+    import torch._compile
+
+    wrapper_file = torch._compile.__file__
+    for cls in torch.optim.LBFGS.__mro__:
+        for attr in vars(cls).values():
+            fn = getattr(attr, "__wrapped__", None)
+            code = getattr(attr, "__code__", None)
+            if fn is not None and code is not None and code.co_filename == wrapper_file \
+                    and not hasattr(fn, "__dynamo_disable"):
+                fn.__dynamo_disable = fn
 
 
 def minimise(objective, variables, max_iter: int, tolerance_change: float, tolerance_grad: float = 1e-10,
@@ -13,6 +36,7 @@ def minimise(objective, variables, max_iter: int, tolerance_change: float, toler
     ``objective`` returning per-start (totals (B,), data terms (B,)) of the unconstrained
     ``variables``; the leaves at ``frozen`` positions are not trained. Returns the optimised
     leaves (detached) and the iterations taken. One line search serves every start."""
+    _without_dynamo_import()
     leaves = [v.detach().clone().requires_grad_(True) for v in variables]
     trained = [leaf for i, leaf in enumerate(leaves) if i not in frozen]
     optimiser = torch.optim.LBFGS(

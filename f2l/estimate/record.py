@@ -12,6 +12,8 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from f2l import __version__
 from f2l.estimate.estimator import EstimationError, EstimatorConfig, FaceObservation, estimate
 from f2l.models.capabilities import SunAngles, declared
@@ -54,6 +56,8 @@ def _base_row(record_like: dict, model: str) -> dict:
         "preview_path": None,
         "grid_height": int(record_like.get("grid_height") or 0),
         "grid_width": int(record_like.get("grid_width") or 0),
+        "absolute_scale_cd_m2": None,
+        "absolute_scale_source": "",
         "config_hash": "",
         "timings_json": "{}",
     }
@@ -86,14 +90,20 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
             if prior is not None:
                 run_cfg = dataclasses.replace(cfg, sun_elevation_prior=prior)
         result = estimate(obs, model, run_cfg)
+        scale, scale_source = record_absolute_scale(record)
         safe_id = _safe_name(record.face_id)
         probe_rel = f"probes/{model_name}/{safe_id}.exr"
         preview_rel = f"previews/{model_name}/{safe_id}.png"
         (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
         (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
-        write_exr(Path(out_dir) / probe_rel, result.probe,
-                  metadata={"f2l_model": model_name, "f2l_face_id": record.face_id, "f2l_convention": "latlong,+Y up,centre=-Z"})
-        save_png(Path(out_dir) / preview_rel, tonemap(result.probe))
+        probe = result.probe if scale is None else (result.probe * scale).astype(np.float32)
+        write_exr(Path(out_dir) / probe_rel, probe,
+                  metadata={"f2l_model": model_name, "f2l_face_id": record.face_id, "f2l_convention": "latlong,+Y up,centre=-Z",
+                            "f2l_units": "relative: the photo's linear values (1 = full scale)" if scale is None
+                            else "cd/m2 (Rec.709 Y of the RGB is the luminance)",
+                            "f2l_absolute_scale_cd_m2": "" if scale is None else repr(float(scale)),
+                            "f2l_absolute_scale_source": scale_source})
+        save_png(Path(out_dir) / preview_rel, tonemap(probe))
         row.update(
             params=[float(v) for v in result.params],
             param_names=list(result.param_names),
@@ -108,6 +118,8 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
             probe_path=probe_rel,
             preview_path=preview_rel,
             timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
+            absolute_scale_cd_m2=None if scale is None else float(scale),
+            absolute_scale_source=scale_source,
         )
     except EstimationError as exc:
         row.update(status="bad_face", message=f"{record.face_id}: {exc}")
@@ -117,6 +129,22 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
         row.update(status="error", message=f"{record.face_id}{who}: {type(exc).__name__}: {exc}")
     row["runtime_s"] = time.perf_counter() - t0
     return row
+
+
+def record_absolute_scale(record) -> tuple[float | None, str]:
+    """(cd/m² per unit of the record's linear values, source) from its photo's EXIF exposure
+    (:func:`f2l.io.exposure.absolute_scale`); None where the EXIF lacks it or a colour correction
+    changed the photo's exposure scale."""
+    from f2l.io.exposure import absolute_scale
+
+    meta = record.meta if isinstance(getattr(record, "meta", None), dict) else {}
+    colour = meta.get("colour") if isinstance(meta.get("colour"), dict) else {}
+    if colour.get("keep_exposure") is False:
+        return None, "relative (no absolute scale: the colour correction rescaled the exposure)"
+    exif = meta.get("exif")
+    if not isinstance(exif, dict):
+        return None, "relative (no absolute scale: the record holds no EXIF)"
+    return absolute_scale(exif)
 
 
 def capture_sun_prior(record, sigma_rad: float) -> tuple[tuple[float, float] | None, str]:

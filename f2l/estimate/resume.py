@@ -34,7 +34,7 @@ def _read_rows(path: Path) -> list[dict]:
     try:
         table = pq.read_table(path)
         validate_table(table, "estimates", source=str(path))
-    except Exception:  # a damaged part: its faces are simply estimated again
+    except Exception:  # a damaged part, or one of an older schema: its faces are estimated again
         return []
     return table.to_pylist()
 

@@ -60,8 +60,7 @@ def run_estimates(
     EstimatorConfig's (ignored with ``config``)."""
     from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records
-    from f2l.models.registry import load_model
-    from f2l.lighting.grid import LatLongGrid
+    from f2l.models.registry import model_class
 
     if executor not in ("local", "ray"):
         raise ValueError(f"executor must be 'local' or 'ray', got {executor!r}")
@@ -76,7 +75,7 @@ def run_estimates(
         cfg = dataclasses.replace(cfg, skin_reflection=float(skin_reflection))
     hashes = {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
-        hashes[name] = config_hash(name, load_model(name, LatLongGrid(8, 16)).version, cfg)
+        hashes[name] = config_hash(name, model_class(name).version, cfg)
     shard_paths = [str(Path(s).resolve()) for s in shards]
     run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models,
                 "config": asdict(cfg), "config_hashes": hashes, "executor": executor}

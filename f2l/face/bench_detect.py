@@ -199,6 +199,73 @@ def run_detect_bench(photos: int = 60, negatives: int = 100, sizes_mp: tuple[flo
     }
 
 
+def rendered_recall(folders, min_face_px: float = 40.0, detector: str = "full_range") -> dict:
+    """Detection recall on ``f2l render-faces --framing …`` sets (their ``meta/*.json`` hold every
+    true face box): by face-width band and by framing. A true face counts when it lies wholly in
+    the frame and is at least ``min_face_px`` wide; it is found when a kept face's detection box
+    overlaps its box by IoU > 0.3 (the true box runs chin to mid-forehead, BlazeFace's a little
+    higher)."""
+    import json
+    from pathlib import Path
+
+    from PIL import Image
+
+    from f2l.face.detector import iou
+
+    lm = _landmarker(detector)
+    bands = {b: [0, 0] for b in BANDS}
+    framings: dict[str, list[int]] = {}
+    photos = extra = skipped = 0
+    misses = []
+    for folder in map(Path, folders):
+        for meta_path in sorted((folder / "meta").glob("*.json")):
+            meta = json.loads(meta_path.read_text())
+            faces_true = [f for f in meta.get("faces", []) if f["in_frame"] and f["width_px"] >= min_face_px]
+            skipped += len(meta.get("faces", [])) - len(faces_true)
+            if not faces_true:
+                continue
+            image = np.asarray(Image.open(folder / "photos" / f"{meta_path.stem}.jpg").convert("RGB"))
+            found = lm(image, min_face_px=min_face_px)
+            boxes = np.array([f.detection.box for f in found]).reshape(-1, 4)
+            used = set()
+            photos += 1
+            for t in faces_true:
+                overlap = iou(np.asarray(t["box"], np.float64), boxes) if len(boxes) else np.zeros(1)
+                hit = bool(overlap.max() > 0.3)
+                if hit:
+                    used.add(int(np.argmax(overlap)))
+                else:
+                    misses.append({"photo": meta_path.stem, "width_px": t["width_px"],
+                                   "yaw_deg": t["pose"]["yaw_deg"]})
+                band = next(b for b in BANDS if b[0] <= t["width_px"] < b[1]) if t["width_px"] >= BANDS[0][0] else None
+                if band is not None:
+                    bands[band][0] += int(hit)
+                    bands[band][1] += 1
+                fr = framings.setdefault(meta.get("framing", "portrait"), [0, 0])
+                fr[0] += int(hit)
+                fr[1] += 1
+            extra += len(found) - len(used)
+    found_n = sum(v[0] for v in bands.values())
+    total = sum(v[1] for v in bands.values())
+    return {"photos": photos, "true_faces": total, "found": found_n, "recall": found_n / max(total, 1),
+            "bands": [{"band": _band_name(b), "found": v[0], "faces": v[1], "recall": v[0] / v[1] if v[1] else None}
+                      for b, v in bands.items()],
+            "framings": {k: {"found": v[0], "faces": v[1]} for k, v in sorted(framings.items())},
+            "extra_detections": extra, "not_counted": skipped, "misses": misses}
+
+
+def format_rendered(r: dict) -> str:
+    lines = [f"rendered framings: {r['photos']} photos, {r['true_faces']} faces in frame and wide enough "
+             f"({r['not_counted']} not counted)", "", "| face width (px) | found / faces | recall |", "|---|---|---|"]
+    for b in r["bands"]:
+        rec = "—" if b["recall"] is None else f"{100 * b['recall']:.1f}%"
+        lines.append(f"| {b['band']} | {b['found']} / {b['faces']} | {rec} |")
+    lines.append(f"| all | {r['found']} / {r['true_faces']} | **{100 * r['recall']:.1f}%** |")
+    lines.append("\n" + ", ".join(f"{k}: {v['found']} / {v['faces']}" for k, v in r["framings"].items())
+                 + f"; {r['extra_detections']} detections that are no true face")
+    return "\n".join(lines)
+
+
 def _band_name(b) -> str:
     return f"> {b[0]}" if math.isinf(b[1]) else f"{b[0]}-{b[1]}"
 

@@ -120,10 +120,11 @@ def bench_detect_cmd(
     detector: str = typer.Option("full_range", help="full_range (shipped) or short_range (the landmark bundle's detector, tiled alike)."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face searched for (px)."),
     seed: int = typer.Option(0, help="Seed of the composites."),
+    rendered: Optional[list[Path]] = typer.Option(None, "--rendered", help="Also the recall on `f2l render-faces --framing ...` folders (their meta holds every true face box); repeatable."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
 ) -> None:
     """Face detection on real photographs framed wide: recall by face width, false detections per 100 face-free photos, time by photo size."""
-    from f2l.face.bench_detect import format_table, run_detect_bench
+    from f2l.face.bench_detect import format_rendered, format_table, rendered_recall, run_detect_bench
 
     try:
         sizes = tuple(float(v) for v in sizes_mp.split(",") if v.strip())
@@ -134,4 +135,12 @@ def bench_detect_cmd(
                                   detector=detector, min_face_px=min_face_px)
     except (RuntimeError, ValueError) as exc:
         fail(str(exc))
-    typer.echo(json.dumps(result) if json_out else format_table(result))
+    if rendered:
+        missing = [str(p) for p in rendered if not (Path(p) / "meta").is_dir()]
+        if missing:
+            fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+        result["rendered"] = rendered_recall(rendered, min_face_px=min_face_px, detector=detector)
+    if json_out:
+        typer.echo(json.dumps(result))
+    else:
+        typer.echo(format_table(result) + ("\n\n" + format_rendered(result["rendered"]) if rendered else ""))

@@ -189,12 +189,22 @@ def _outside_fraction(xy: np.ndarray, hw: tuple[int, int]) -> float:
 
 
 def sky_visibility(bits: np.ndarray, grid: LatLongGrid) -> np.ndarray:
-    """Solid-angle fraction (N,) of the upper hemisphere that each pixel sees (visible bits)."""
-    from f2l.io.shards import unpack_visibility
+    """Solid-angle fraction (N,) of the upper hemisphere that each pixel sees (visible bits).
 
-    vis = unpack_visibility(bits, grid.size).reshape(len(bits), grid.height, grid.width)
-    sa = grid.solid_angles.reshape(grid.height, grid.width)[: grid.height // 2]
-    return (vis[:, : grid.height // 2] * sa).sum((1, 2)) / sa.sum()
+    Read from the packed bits (little bit order, texels row-major from the zenith): each byte of
+    the upper hemisphere's rows indexes a table of the solid angle its 8 texels add up to, so no
+    (N, texels) array is made."""
+    half = grid.height // 2 * grid.width
+    sa = np.asarray(grid.solid_angles, np.float64).reshape(-1)[:half]
+    nbytes = -(-half // 8)
+    sa = np.concatenate([sa, np.zeros(nbytes * 8 - half)]).reshape(nbytes, 8)
+    codes = np.arange(256)[:, None] >> np.arange(8)[None, :] & 1  # (256, 8) little bit order
+    table = sa @ codes.T.astype(np.float64)  # (nbytes, 256): solid angle of each byte value
+    upper = np.asarray(bits)[:, :nbytes]
+    if half % 8:  # the last byte also holds lower-hemisphere texels: keep only the upper ones
+        upper = upper.copy()
+        upper[:, -1] &= (1 << (half % 8)) - 1
+    return table[np.arange(nbytes)[None, :], upper].sum(1) / sa.sum()
 
 
 # ---------------------------------------------------------------------------------------------

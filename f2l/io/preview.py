@@ -52,20 +52,26 @@ def auto_exposure_scale(hdr: np.ndarray, percentile: float = 99.0) -> float:
     return _TARGET / ref if ref > 0.0 else 1.0
 
 
+def srgb_encode(v: np.ndarray) -> np.ndarray:
+    """The sRGB OETF (IEC 61966-2-1) of linear values in [0, 1], float64; equal to colour-science's
+    ``cctf_encoding(v, function="sRGB")`` (tests/test_preview.py), written out because importing
+    colour-science costs about a second, most of a cold ``f2l estimate`` on one photo."""
+    v = np.asarray(v, np.float64)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(np.maximum(v, 0.0031308), 1.0 / 2.4) - 0.055)
+
+
 def tonemap(hdr: np.ndarray, exposure_ev: float | None = None, percentile: float = 99.0) -> np.ndarray:
     """Tone-map linear HDR (H, W, 3) or (H, W) to sRGB uint8 (H, W, 3).
 
     ``exposure_ev`` given: scale = 2 ** exposure_ev. Otherwise scale = 0.8 / (percentile of
     Rec.709 luminance). Then clip(scale * x, 0, 1) -> sRGB OETF -> round(255 v). NaN -> 0.
     """
-    import colour  # deferred: importing colour-science takes seconds
-
     x = _as_rgb_float(hdr)
     scale = 2.0 ** float(exposure_ev) if exposure_ev is not None else auto_exposure_scale(x, percentile)
     with np.errstate(invalid="ignore", over="ignore"):
         v = np.clip(x * scale, 0.0, 1.0)
     v = np.nan_to_num(v, nan=0.0)  # inf * 0 scale
-    encoded = np.asarray(colour.cctf_encoding(v, function="sRGB"), dtype=np.float64)
+    encoded = srgb_encode(v)
     return np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
 
 

@@ -5,12 +5,24 @@ packages, so there is exactly one path. A plugin that fails to import, or that d
 capability (``f2l.models.capabilities``) it does not honour, is reported with its name, the
 capability and the reason; the other models keep working. Capabilities are checked statically
 when the class is loaded and numerically the first time the model is made on a grid size.
+
+A numeric check that passed is remembered across processes (:func:`check_stamp`): a stamp file
+named by the SHA-256 of the model's target, grid, its package's source files, f2l's own source
+files and the numpy/torch versions, under ``$F2L_CACHE_DIR`` (default
+``$XDG_CACHE_HOME/f2l`` or ``~/.cache/f2l``). Any edit to the plugin or to f2l, or another
+torch, names another stamp, so the check runs again; a check that fails is never stamped. An
+unwritable cache only costs the check again.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import sys
 from dataclasses import dataclass
+from functools import lru_cache
 from importlib.metadata import entry_points
+from pathlib import Path
 
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
@@ -67,27 +79,100 @@ def discover() -> dict[str, ModelInfo]:
     return dict(sorted(found.items()))
 
 
-def load_model(name: str, grid: LatLongGrid) -> LightingModel:
-    """Instantiate the model registered as ``name`` on ``grid``."""
+def _loaded(name: str) -> ModelInfo:
+    """The registry entry of ``name``, whose class loaded; :class:`ModelNotFoundError` otherwise."""
     models = discover()
     if name not in models:
         raise ModelNotFoundError(f"unknown lighting model {name!r}; installed: {', '.join(models) or 'none'}")
     info = models[name]
     if not info.ok:
         raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to load: {info.error}")
+    return info
+
+
+def load_model(name: str, grid: LatLongGrid) -> LightingModel:
+    """Instantiate the model registered as ``name`` on ``grid``."""
+    info = _loaded(name)
     try:
         model = info.cls(grid)
     except Exception as exc:  # e.g. a model's data file (weights, prior) is missing or broken
         raise ModelNotFoundError(f"lighting model {name!r} ({info.target}) failed to initialise: {exc}") from exc
     key = (info.target, info.package, grid.height, grid.width)
     if key not in _CHECKED:
-        try:
-            check_model(model)
-        except Exception as exc:  # noqa: BLE001 - whatever a plugin raises, say which one and why
-            raise ModelNotFoundError(f"lighting model {name!r} from {info.package} ({info.target}) was refused: "
-                                     f"{exc}") from exc
+        stamp = check_stamp(info, grid)
+        if stamp is None or not stamp.is_file():
+            try:
+                check_model(model)
+            except Exception as exc:  # noqa: BLE001 - whatever a plugin raises, say which one and why
+                raise ModelNotFoundError(f"lighting model {name!r} from {info.package} ({info.target}) was "
+                                         f"refused: {exc}") from exc
+            _write_stamp(stamp)
         _CHECKED.add(key)
     return model
 
 
+def model_class(name: str) -> type:
+    """The class registered as ``name`` (its ``version``, ``name``, capabilities) without building
+    it; raises :class:`ModelNotFoundError` as :func:`load_model` does for an unknown model or one
+    that failed to load."""
+    return _loaded(name).cls
+
+
 _CHECKED: set[tuple] = set()  # (target, package, H, W) whose capabilities passed check_model
+STAMP_DIR = "capability-checks"
+
+
+def cache_dir() -> Path:
+    """f2l's per-user cache: ``$F2L_CACHE_DIR``, else ``$XDG_CACHE_HOME/f2l``, else ``~/.cache/f2l``."""
+    env = os.environ.get("F2L_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "f2l"
+
+
+@lru_cache(maxsize=64)
+def _sources_digest(folder: str) -> str:
+    """SHA-256 over the paths and bytes of every ``.py`` file under ``folder`` (sorted)."""
+    h = hashlib.sha256()
+    root = Path(folder)
+    for path in sorted(root.rglob("*.py")):
+        try:
+            data = path.read_bytes()
+        except OSError:
+            continue
+        h.update(str(path.relative_to(root)).encode() + b"\0" + hashlib.sha256(data).digest())
+    return h.hexdigest()
+
+
+def check_stamp(info: ModelInfo, grid: LatLongGrid) -> Path | None:
+    """The stamp file that says ``info``'s class passed :func:`check_model` on ``grid``'s size with
+    exactly this code (module docstring); None when its source cannot be located."""
+    import numpy
+    import torch
+
+    import f2l
+
+    module = sys.modules.get(getattr(info.cls, "__module__", ""), None)
+    source = getattr(module, "__file__", None)
+    if not source:
+        return None
+    top = sys.modules.get(info.cls.__module__.split(".")[0])
+    top_file = getattr(top, "__file__", None) or source
+    folder = Path(top_file).parent if Path(top_file).name == "__init__.py" else Path(source).parent
+    parts = [info.target, info.package, f"{grid.height}x{grid.width}", numpy.__version__, torch.__version__,
+             _sources_digest(str(folder)), _sources_digest(str(Path(f2l.__file__).parent))]
+    digest = hashlib.sha256("\n".join(parts).encode()).hexdigest()
+    return cache_dir() / STAMP_DIR / digest
+
+
+def _write_stamp(stamp: Path | None) -> None:
+    if stamp is None:
+        return
+    try:
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        tmp = stamp.with_name(f".{stamp.name}.{os.getpid()}.tmp")
+        tmp.write_text("passed\n", encoding="ascii")
+        os.replace(tmp, stamp)
+    except OSError:
+        pass  # an unwritable cache: the check simply runs again next time

@@ -26,9 +26,10 @@ def render_faces_cmd(
     clipping: bool = typer.Option(True, "--clipping/--no-clipping", help="Expose so the brightest few % of the face clip, or keep the face below 0.9."),
     sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
     maps: str = typer.Option("eval", help="Which real maps: eval (the seven of `make eval-real`) or held-out (city, sunrise, sunset: no default was chosen on them)."),
+    framing: str = typer.Option("portrait", help="portrait (one head, 35-55% of a square frame), half (one person, head 12-25% of a 3:2 frame's long side), full (4-10%) or group (2-5 people, 5-14% each, one light); wider framings use --image-px as the long side (1280 suggested)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies."""
+    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups."""
     from f2l.render import RenderExtraMissing
     from f2l.render.dataset import RenderOptions, render_faces
     from f2l.render.heads import require_anny
@@ -44,7 +45,14 @@ def render_faces_cmd(
                                 clipping=clipping, sunsky_fraction=sunsky_fraction, maps=maps)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
+    from f2l.render.framing import FRAMINGS, render_framed
+
+    if framing not in FRAMINGS:
+        raise typer.BadParameter(f"must be one of {', '.join(FRAMINGS)}", param_hint="--framing")
+    if framing == "portrait":
+        summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
+    else:
+        summary = render_framed(out, framing, n, seed, options, start=start, progress=not json_out)
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["cases"] and len(summary["errors"]) == summary["cases"]:
         raise typer.Exit(code=1)

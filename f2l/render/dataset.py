@@ -152,11 +152,38 @@ def _face_box(head_posed, settings, width_px) -> tuple[slice, slice]:
     return slice(r0, r1 + 1), slice(c0, c1 + 1)
 
 
+def render_settings(spec: dict, options: RenderOptions, width_px: int, height_px: int, fov_x_deg: float,
+                    distance_cm: float):
+    """The :class:`f2l.render.scene.RenderSettings` of a case: its frame, camera, sampling and skin."""
+    from f2l.render.scene import RenderSettings
+
+    return RenderSettings(width_px=width_px, height_px=height_px, fov_x_deg=fov_x_deg,
+                          camera_distance_cm=float(distance_cm), spp=options.spp, max_depth=options.max_depth,
+                          specular=options.specular, skin_roughness=spec["material"]["skin_roughness"],
+                          skin_specular=spec["material"]["skin_specular"], seed=spec["index"])
+
+
+def expose(image: np.ndarray, face: np.ndarray, spec: dict, options: RenderOptions) -> tuple[np.ndarray, float]:
+    """(8-bit sRGB photo, exposure) of a linear render: the ``exposure_percentile`` of the face
+    pixels' brightest channel to 1.0 (``clipping``; else the face's maximum to 0.9), shot and read
+    noise from the case's noise stream, sRGB-encoded."""
+    from f2l.colour.chart import srgb_encode_uint8
+
+    cam = spec["camera"]
+    if options.clipping:
+        exposure = 1.0 / max(np.percentile(image.max(axis=-1)[face], cam["exposure_percentile"]), 1e-12)
+    else:
+        exposure = 0.9 / max(image[face].max(), 1e-12)
+    exposed = image * exposure
+    noise_rng = _stream(spec["seed"], spec["index"], 5)
+    sigma = np.sqrt(cam["shot_noise"] * np.clip(exposed, 0, None) + cam["read_noise"] ** 2)
+    return srgb_encode_uint8(exposed + sigma * noise_rng.standard_normal(exposed.shape)), float(exposure)
+
+
 def render_case(spec: dict, options: RenderOptions) -> dict:
     """Render one drawn case; returns the linear image, 8-bit photo, probe and extra meta."""
-    from f2l.colour.chart import srgb_encode_uint8
     from f2l.render.heads import anny_head, canonical_head
-    from f2l.render.scene import RenderSettings, ground_truth_probe, render_head
+    from f2l.render.scene import ground_truth_probe, render_head
 
     t0 = time.perf_counter()
     head_rng = _stream(spec["seed"], spec["index"], 1)
@@ -172,10 +199,7 @@ def render_case(spec: dict, options: RenderOptions) -> dict:
         & (head.vertices[:, 2] > -2.0)
     posed = head.posed(rotation, offset)
     posed.info["face_front_points"] = posed.vertices[front]
-    settings = RenderSettings(width_px=options.image_px, height_px=options.image_px, fov_x_deg=fov,
-                              camera_distance_cm=float(distance), spp=options.spp, max_depth=options.max_depth,
-                              specular=options.specular, skin_roughness=spec["material"]["skin_roughness"],
-                              skin_specular=spec["material"]["skin_specular"], seed=spec["index"])
+    settings = render_settings(spec, options, options.image_px, options.image_px, fov, distance)
     lighting = _lighting(spec["lighting"])
     t_head = time.perf_counter()
     result = render_head(posed, lighting, settings)
@@ -187,18 +211,9 @@ def render_case(spec: dict, options: RenderOptions) -> dict:
     face = np.zeros_like(on_head)
     face[rows, cols] = True
     face &= on_head
-    brightest_channel = image.max(axis=-1)
     if not face.any():
         raise RuntimeError(f"{spec['face_id']}: the face is not in the frame")
-    if options.clipping:
-        exposure = 1.0 / max(np.percentile(brightest_channel[face], cam["exposure_percentile"]), 1e-12)
-    else:
-        exposure = 0.9 / max(image[face].max(), 1e-12)
-    exposed = image * exposure
-    noise_rng = _stream(spec["seed"], spec["index"], 5)
-    sigma = np.sqrt(cam["shot_noise"] * np.clip(exposed, 0, None) + cam["read_noise"] ** 2)
-    noisy = exposed + sigma * noise_rng.standard_normal(exposed.shape)
-    photo = srgb_encode_uint8(noisy)
+    photo, exposure = expose(image, face, spec, options)
     probe = ground_truth_probe(lighting, PROBE_GRID) * exposure
     t_done = time.perf_counter()
     clipped = float((photo[face] == 255).any(axis=-1).mean())
@@ -242,7 +257,8 @@ def _write_case(out: Path, spec: dict, options: RenderOptions, rendered: dict) -
     with atomic_path(out / "truth" / f"{fid}.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, vertices_cm=head.vertices.astype(np.float32), faces=head.faces.astype(np.int32),
-                                normals=head.normals.astype(np.float32), part=head.part.astype(np.int8))
+                                normals=head.normals.astype(np.float32), part=head.part.astype(np.int8),
+                                **rendered.get("truth_extra", {}))
     meta = {**spec, "options": asdict(options), **rendered["meta"]}
     write_text_atomic(out / "meta" / f"{fid}.json", json.dumps(meta, indent=1))
 

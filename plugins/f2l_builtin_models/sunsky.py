@@ -69,12 +69,20 @@ MAX_PRIOR_COMPONENTS = 4  # x 4 azimuths = 16 starts
 SKY_INTEGRAL = 2.0 * math.pi  # sum of the normalised sky's luminance x dOmega over the hemisphere
 
 
+# CIE XYZ -> linear Rec.709 RGB: colour-science's RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB,
+# bit for bit (tests/test_sunsky.py checks it against the library); held as a constant because
+# importing colour-science costs about a second of every estimating process.
+XYZ_TO_REC709 = (
+    (3.240969941904522, -1.537383177570094, -0.49861076029300344),
+    (-0.9692436362808798, 1.8759675015077206, 0.04155505740717563),
+    (0.05563007969699364, -0.20397695888897655, 1.0569715142428786),
+)
+
+
 @functools.cache
 def xyz_to_rgb_matrix() -> np.ndarray:
-    """(3, 3) CIE XYZ -> linear Rec.709 RGB, from colour-science (imported on first use only)."""
-    import colour  # slow (seconds): kept out of module import and of `f2l models`
-
-    return np.array(colour.RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB, dtype=np.float64)
+    """(3, 3) CIE XYZ -> linear Rec.709 RGB (:data:`XYZ_TO_REC709`)."""
+    return np.array(XYZ_TO_REC709, dtype=np.float64)
 
 
 @functools.cache
