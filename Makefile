@@ -48,9 +48,10 @@ bench-detect: $(STAMP)
 bench-faces: $(STAMP)
 	$(BIN)/f2l bench-faces --faces 6
 
-# Face detection on path-traced photos framed wide (f2l/render/framing.py): 30 half-body, 30 full-body and 40
-# group photos (2-5 people; ~200 faces in all) at 1280 px and 16 spp, then recall by face width and framing
-# (f2l bench-detect --rendered; docs/experiments/face_detection.md). ~40 min on 2 cores; resumable.
+# Real framings, path-traced (f2l/render/framing.py): 30 half-body, 30 full-body and 40 group photos (2-5
+# people; ~200 faces) at 1280 px and 16 spp; detection recall by face width and framing (bench-detect
+# --rendered), then fit, estimate (sunsky) and the accuracy-against-face-size table (eval-framings;
+# docs/experiments/face_detection.md). ~60 min on 2 cores; resumable.
 EVAL_FRAMINGS := build/eval_framings
 eval-framings: $(STAMP)
 	$(BIN)/f2l render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json
@@ -58,6 +59,11 @@ eval-framings: $(STAMP)
 	$(BIN)/f2l render-faces --framing group --out $(EVAL_FRAMINGS)/group --n 40 --seed 0 --image-px 1280 --spp 16 --json
 	$(BIN)/f2l bench-detect --rendered $(EVAL_FRAMINGS)/half --rendered $(EVAL_FRAMINGS)/full \
 		--rendered $(EVAL_FRAMINGS)/group
+	$(BIN)/f2l fit-faces $(EVAL_FRAMINGS)/half/photos $(EVAL_FRAMINGS)/full/photos $(EVAL_FRAMINGS)/group/photos \
+		--out $(EVAL_FRAMINGS)/fitted --json
+	$(BIN)/f2l estimate $(EVAL_FRAMINGS)/fitted -m sunsky --out $(EVAL_FRAMINGS)/est --json
+	$(BIN)/f2l eval-framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
+		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est --out $(EVAL_FRAMINGS)
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)

@@ -381,8 +381,9 @@ from f2l.capture.cli import bench_capture_cmd, ingest_cmd, make_probes_cmd  # no
 from f2l.colour.cli import calibrate_cmd  # noqa: E402
 from f2l.pipeline.cli import build_dataset_cmd  # noqa: E402
 from f2l.face.cli import bench_detect_cmd, bench_faces_cmd, compare_geometry_cmd, fit_faces_cmd  # noqa: E402
-from f2l.render.cli import (eval_real_ablations_cmd, eval_real_cmd, eval_real_geometry_cmd,  # noqa: E402
-                            eval_real_search_cmd, render_faces_cmd, render_skies_cmd, twin_geometry_cmd)
+from f2l.render.cli import (eval_framings_cmd, eval_real_ablations_cmd, eval_real_cmd,  # noqa: E402
+                            eval_real_geometry_cmd, eval_real_search_cmd, render_faces_cmd, render_skies_cmd,
+                            twin_geometry_cmd)
 
 STAGE_COMMANDS = {
     "ingest": ingest_cmd, "make-probes": make_probes_cmd, "bench-capture": bench_capture_cmd,
@@ -391,7 +392,7 @@ STAGE_COMMANDS = {
     "bench-detect": bench_detect_cmd,
     "render-faces": render_faces_cmd, "render-skies": render_skies_cmd, "twin-geometry": twin_geometry_cmd, "eval-real": eval_real_cmd,
     "eval-real-geometry": eval_real_geometry_cmd, "eval-real-search": eval_real_search_cmd,
-    "eval-real-ablations": eval_real_ablations_cmd,
+    "eval-real-ablations": eval_real_ablations_cmd, "eval-framings": eval_framings_cmd,
 }
 for _name, _command in STAGE_COMMANDS.items():
     app.command(_name)(_command)

@@ -470,3 +470,19 @@ def test_sky_visibility_from_packed_bits_equals_the_unpacked_sum(hw):
     sa = grid.solid_angles.reshape(hw)[: hw[0] // 2]
     np.testing.assert_allclose(sky_visibility(bits, grid), (vis * sa).sum((1, 2)) / sa.sum(), rtol=0, atol=1e-14)
     assert sky_visibility(np.full((1, bits.shape[1]), 255, np.uint8), grid)[0] == pytest.approx(1.0, abs=1e-14)
+
+
+def test_an_overexposed_face_is_refused_as_clipped(photo_dir, tmp_path):
+    """The astronaut x1.5 (her skin near 90% saturated): most of her skin clips; the face is refused with the
+    share of clipped skin, not fitted from the few pixels left."""
+    from PIL import Image
+
+    a = np.asarray(Image.open(photo_dir / "astronaut.png").convert("RGB")).astype(np.float64)
+    Image.fromarray(np.clip(a * 1.5, 0, 255).astype(np.uint8)).save(tmp_path / "bright.png")
+    res = invoke("fit-faces", tmp_path / "bright.png", "--out", tmp_path / "out", "--grid", GRID, "--json")
+    assert res.exit_code == 0, res.output
+    row = status_rows(tmp_path / "out")["bright.png"]
+    rejected = json.loads(row["rejected_json"])
+    assert row["status"] == "rejected" and [r["reason"] for r in rejected] == ["clipped"], row
+    share = re.search(r"(\d+)% of its skin is clipped", rejected[0]["message"])
+    assert share is not None and int(share.group(1)) > 50

@@ -81,3 +81,52 @@ def test_rendered_recall_reads_the_true_boxes(tmp_path):
     assert r["true_faces"] == 1 and r["found"] == 1 and r["not_counted"] == 1 and r["recall"] == 1.0
     assert r["framings"] == {"group": {"found": 1, "faces": 1}}
     assert "| all | 1 / 1 |" in format_rendered(r)
+
+
+def test_accuracy_by_face_width_joins_truth_records_and_estimates(tmp_path):
+    """A render-faces-like folder (two astronauts, one 107 px and one 27 px wide, a true probe with a
+    sun): fit-faces, estimate (sh9), then the per-band table: the wide face found, fitted, scored;
+    the narrow one below the table's 40 px and not counted."""
+    skdata = pytest.importorskip("skimage.data")
+    from typer.testing import CliRunner
+
+    from f2l.cli import app
+    from f2l.face.bench_detect import ASTRONAUT_FACE
+    from f2l.io.exr import write_exr
+    from f2l.lighting.grid import LatLongGrid, direction_from_angles
+    from f2l.render.framing import accuracy_by_face_width
+    from f2l.synth.skies import clear_sky
+
+    render = tmp_path / "render"
+    for sub in ("photos", "meta", "probes"):
+        (render / sub).mkdir(parents=True)
+    a = skdata.astronaut()
+    canvas = np.full((600, 1400, 3), 90, np.uint8)
+    canvas[40:552, 60:572] = a
+    canvas[300:428, 900:1028] = np.asarray(Image.fromarray(a).resize((128, 128)))
+    Image.fromarray(canvas).save(render / "photos" / "case.jpg", quality=95)
+    grid = LatLongGrid(16, 32)
+    sun = direction_from_angles(np.radians(40.0), np.radians(30.0))
+    write_exr(render / "probes" / "case.exr", clear_sky(grid, np.radians(40.0), np.radians(30.0)).astype(np.float32))
+    big = (ASTRONAUT_FACE + [60, 40, 60, 40]).tolist()
+    tiny = (ASTRONAUT_FACE / 4 + [900, 300, 900, 300]).tolist()
+    faces = [{"box": b, "width_px": b[2] - b[0], "in_frame": True, "pose": {"yaw_deg": 0.0}} for b in (big, tiny)]
+    (render / "meta" / "case.json").write_text(json.dumps({
+        "face_id": "case", "framing": "group", "faces": faces,
+        "sky": {"kind": "clear", "sun_direction": [float(v) for v in sun]}}))
+    runner = CliRunner()
+    res = runner.invoke(app, ["fit-faces", str(render / "photos"), "--out", str(tmp_path / "fitted"), "--grid", "16x32",
+                              "--json"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["estimate", str(tmp_path / "fitted"), "-m", "sh9", "--out", str(tmp_path / "est"), "--json"])
+    assert res.exit_code == 0, res.output
+    result = accuracy_by_face_width([render], tmp_path / "fitted", tmp_path / "est")
+    (row,) = result["rows"]
+    assert row["band"] == "80-160" and row["found"] and row["fitted"] and row["case"] == "case"
+    metrics = row["estimates"]["sh9"]
+    assert np.isfinite(metrics["MAE (s)"]) and 0 <= metrics["Sun-ang (°)"] <= 180
+    assert "| 80-160 | 1 | 1 | 1 | 1 |" in result["table"] and "| all | 1 |" in result["table"]
+    res = runner.invoke(app, ["eval-framings", str(render), "--fitted", str(tmp_path / "fitted"), "--est",
+                              str(tmp_path / "est"), "--out", str(tmp_path / "report")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "report" / "accuracy_by_face_width.md").read_text().strip() == result["table"]

@@ -12,7 +12,9 @@ For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
    sample is, near-black if all are;
 4. skin mask: inside the face oval and off the features and border (:mod:`f2l.face.regions`;
    the border's upper-forehead band kept where its colour is the skin's, ``hairline``,
-   :mod:`f2l.face.hair`), not clipped, not near-black;
+   :mod:`f2l.face.hair`), not clipped, not near-black; a face is refused as ``clipped`` when more
+   than ``max_clipped_fraction`` of its skin is clipped (overexposed), as ``too_few_pixels`` when
+   fewer than ``min_mask_pixels`` usable skin pixels remain;
 5. visibility bits on the lighting grid (:func:`f2l.transport.compute_visibility`), traced
    for the pixels the estimator uses (``transport_pixels="mask"``, the default: the skin mask
    and the clipped skin pixels, which sun models read as censored observations) or for every
@@ -54,6 +56,7 @@ class FitOptions:
     max_yaw_deg: float = 50.0
     max_outside_fraction: float = 0.02
     min_mask_pixels: int = 200
+    max_clipped_fraction: float = 0.5  # refuse a face whose skin is more clipped than this
     max_faces: int = 0  # the first so many detections (score order); 0: every face
     body_proxy: bool = False  # a neck-and-shoulders occluder posed with the head (f2l.face.body)
     # the upper forehead's hairline band (f2l.face.regions): "colour" keeps its pixels that have
@@ -70,7 +73,7 @@ class FitOptions:
                 "transport_pixels": self.transport_pixels, "min_face_px": self.min_face_px,
                 "max_yaw_deg": self.max_yaw_deg,
                 "max_outside_fraction": self.max_outside_fraction, "body_proxy": self.body_proxy,
-                "hairline": self.hairline}
+                "hairline": self.hairline, "max_clipped_fraction": self.max_clipped_fraction}
 
 
 @dataclass
@@ -269,6 +272,10 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     excluded = {"features": reg["features"], "border": border, "hair": hair,
                 "clipped": clipped & skin, "black": black & skin & ~clipped}
     mask = skin & ~clipped & ~black
+    clipped_fraction = float((clipped & skin).sum()) / max(int(skin.sum()), 1)
+    if clipped_fraction > options.max_clipped_fraction:
+        return Rejected(face_index, "clipped", f"face {face_index}: {clipped_fraction:.0%} of its skin is clipped "
+                        f"(> {options.max_clipped_fraction:.0%}): the photo is overexposed there")
     if int(mask.sum()) < options.min_mask_pixels:
         return Rejected(face_index, "too_few_pixels", f"face {face_index}: {int(mask.sum())} "
                         f"usable skin pixels < {options.min_mask_pixels}")
@@ -403,6 +410,8 @@ def face_record(fit: FaceFit, photo, face_id: str, options: FitOptions, *,
         "exif": photo.exif,
         "photo_kind": photo.kind,
         "greyscale": is_greyscale(fit.observed_rgb),
+        "face_box_px": [round(v, 2) for v in landmark_box(fit.landmarks)],
+        "face_width_px": round(face_width_px(fit.landmarks), 2),
     }
     r = fit.view.resolution
     return FaceRecord(

@@ -151,7 +151,8 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                 for fit in fits:
                     if not isinstance(fit, FaceFit):
                         rejected.append({"face_index": fit.face_index, "reason": fit.reason,
-                                         "message": f"{path}: {fit.message}"})
+                                         "message": f"{path}: {fit.message}",
+                                         "box": None if fit.box is None else [round(v, 2) for v in fit.box]})
                         continue
                     fid = face_id(path, sha, fit.face_index)
                     crop_rel = write_side_photo(out, fid, fit.crop_display)

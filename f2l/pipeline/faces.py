@@ -145,7 +145,8 @@ class FaceFitter:
                     if not isinstance(fit, FaceFit):
                         out["rejected"].append({"face_index": fit.face_index,
                                                 "reason": fit.reason,
-                                                "message": f"{rel}: {fit.message}"})
+                                                "message": f"{rel}: {fit.message}",
+                                                "box": None if fit.box is None else [round(v, 2) for v in fit.box]})
                         continue
                     fid = face_id(Path(rel), row["sha256"], fit.face_index)
                     record = face_record(fit, photo, fid, self.options, source_path=rel,

@@ -182,3 +182,28 @@ def eval_real_ablations_cmd(
     table = ablation_table(eval_dir, n)
     write_text_atomic(eval_dir / "ablations.md", table + "\n")
     typer.echo(table)
+
+
+def eval_framings_cmd(
+    render_dirs: list[Path] = typer.Argument(..., help="`f2l render-faces --framing ...` folders."),
+    fitted: Path = typer.Option(..., "--fitted", help="`f2l fit-faces` of their photos (records + status table)."),
+    est: Path = typer.Option(..., "--est", help="`f2l estimate` of the fitted records."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write the table (Markdown) and the per-face rows (JSON) here."),
+    json_out: bool = typer.Option(False, "--json", help="Print the per-face rows as JSON."),
+) -> None:
+    """Accuracy against the face's size: detection, fitting and the §5.1 metrics per band of true face width (40-80, 80-160, 160-320, > 320 px) on framed render sets."""
+    from f2l.render.framing import accuracy_by_face_width
+
+    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
+    if missing:
+        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    if not (Path(est) / "estimates.parquet").is_file():
+        fail(f"{est}: no estimates.parquet")
+    result = accuracy_by_face_width(render_dirs, fitted, est)
+    if out is not None:
+        from f2l.io.atomic import write_text_atomic
+
+        Path(out).mkdir(parents=True, exist_ok=True)
+        write_text_atomic(Path(out) / "accuracy_by_face_width.md", result["table"] + "\n")
+        write_text_atomic(Path(out) / "accuracy_by_face_width.json", json.dumps(result["rows"], indent=1))
+    typer.echo(json.dumps(result["rows"]) if json_out else result["table"])
