@@ -46,15 +46,18 @@ DETECTOR_SHA256 = "99bf9494d84f50acc6617d89873f71bf6635a841ea699c17cb3377f9507cf
 DETECTOR_ENV_VAR = "F2L_FACE_DETECTOR"
 MIN_FACE_PX = 40.0
 # The landmark model's face presence a detection must reach to count as a face. Measured with
-# `f2l bench-detect`: true faces (40 px to the whole frame, 0.5-1.3x brightness) >= 0.99999998;
-# detector hits on face-free photos 0.0-0.87 (two of 100 photos above 0.5).
+# `f2l bench-detect`: true faces on real-photo composites >= 0.99999998; on face-free photos the
+# detector's hits reach up to 0.87 on the first crop and more with the retried crops, and 0.95
+# keeps 200 of them at 0 false faces (docs/experiments/face_detection.md).
 MIN_PRESENCE = 0.95
 # two detections whose landmark boxes overlap this much are one face (the higher presence kept)
 DUPLICATE_IOU = 0.5
 LANDMARKS_SIZE = 256
 NUM_LANDMARKS = 478
 ROI_SCALE = 1.5
-RETRY_ROI_SCALES = (1.8, 2.2)
+# crops tried, in order, while the presence stays under min_presence: (centre, box scale); "nose"
+# centres the crop on the detector's nose keypoint, which suits a turned face better than its box
+ROI_CROPS = (("box", ROI_SCALE), ("nose", 1.5), ("nose", 1.8), ("box", 1.8))
 # Eye-corner landmarks that define the tracking ROI's rotation (subject's right -> left).
 ROI_ROTATION_LANDMARKS = (33, 263)
 
@@ -181,19 +184,20 @@ class FaceLandmarker:
 
     # -- landmarks ---------------------------------------------------------------------------
     def landmarks(self, image: np.ndarray, detection: Detection) -> FaceLandmarks:
-        """The 478 landmarks of one detected face: ROI from the detection (its box × ``ROI_SCALE``,
-        eyes level), then refined from the landmarks. Where the refined presence stays under
-        ``min_presence``, the ROI is tried again ``RETRY_ROI_SCALES`` times the box (a noisy or
-        turned face's first crop can miss it; measured on path-traced group photos: presence
-        0.003 at ×1.5, 0.998 at ×1.8), and the crop with the highest presence is kept."""
+        """The 478 landmarks of one detected face: a crop from the detection (its box ×
+        ``ROI_SCALE``, eyes level), refined from the landmarks. Where the refined presence stays
+        under ``min_presence``, the other ``ROI_CROPS`` are tried (a turned or noisy face's first
+        crop can miss it: measured on path-traced group photos, presence 0.003 on the box's crop,
+        0.99 on the nose's), and the crop with the highest presence is kept."""
         image = _check_image(image)
         x0, y0, x1, y1 = detection.box
         eye_r, eye_l = detection.keypoints[0], detection.keypoints[1]
         rotation = -math.atan2(-(eye_l[1] - eye_r[1]), eye_l[0] - eye_r[0])
+        centres = {"box": ((x0 + x1) / 2, (y0 + y1) / 2), "nose": tuple(detection.keypoints[2])}
         best = None
-        for scale in (ROI_SCALE, *RETRY_ROI_SCALES):
-            roi = ((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) * scale, rotation)
-            points, presence = self._run_landmarks(image, roi)
+        for centre, scale in ROI_CROPS:
+            cx, cy = centres[centre]
+            points, presence = self._run_landmarks(image, (cx, cy, max(x1 - x0, y1 - y0) * scale, rotation))
             for _ in range(self.refine_passes):
                 points, presence = self._run_landmarks(image, _roi_from_landmarks(points))
             if best is None or presence > best[1]:
