@@ -7,8 +7,9 @@ N × N therefore loses every face narrower than ``min_face_input_px / N`` of the
 the photo is searched at several scales instead (:func:`tile_plan`):
 
 * level k looks for faces of width ``[F_k, r · F_k]`` photo px with ``F_0 = min_face_px`` and
-  ``F_{k+1} = r · F_k`` (``r = max/min`` of the band used, below the model's measured band so
-  neighbouring levels overlap); the last level holds faces as wide as the photo's long side;
+  ``F_{k+1} = r · F_k / LEVEL_OVERLAP`` (``r = max/min`` of the band used, inside the model's
+  measured band; neighbouring levels overlap, so a face at a boundary is also seen well above
+  the coarser level's lower end); the last level holds faces up to 1.25 × the long side;
 * at level k the photo is resized by ``s_k = lo / F_k`` (``lo`` = the band's lower end) and cut
   into N × N windows at stride ``N − hi`` (``hi`` = the band's upper end), so a face of the
   level's band lies wholly inside at least one window; windows past the edge are padded black
@@ -42,7 +43,10 @@ FLAT_RANGE = 12  # codes of luminance (max - min) below which a window is skippe
 BAND_SLACK = 1.25
 BAND_SLACK_LOW = 1.5
 EDGE_PX = 1.0
-TOP_FACE_FRACTION = 1.25  # the widest face searched for, as a fraction of the long side  # a box this close to an inner window edge is left to the neighbouring window
+TOP_FACE_FRACTION = 1.25  # the widest face searched for, as a fraction of the long side
+# each level starts this factor below where the last one's band ends, so a face near the boundary is
+# also seen by the finer level, at more than its band's lower end (a 167 px box at 17 px scored 0.47)
+LEVEL_OVERLAP = 1.3  # a box this close to an inner window edge is left to the neighbouring window
 
 
 @dataclass(frozen=True)
@@ -136,7 +140,7 @@ def tile_plan(height: int, width: int, spec: DetectorSpec, min_face_px: float = 
                             face_px=(face_lo, hi / scale)))
         if hi / scale >= top:
             return levels
-        face_lo = hi / scale
+        face_lo = hi / scale / LEVEL_OVERLAP
 
 
 class TiledDetector:
