@@ -486,3 +486,19 @@ def test_an_overexposed_face_is_refused_as_clipped(photo_dir, tmp_path):
     assert row["status"] == "rejected" and [r["reason"] for r in rejected] == ["clipped"], row
     share = re.search(r"(\d+)% of its skin is clipped", rejected[0]["message"])
     assert share is not None and int(share.group(1)) > 50
+
+
+def test_a_greyscale_photo_is_flagged(photo_dir, tmp_path):
+    """A greyscale photo says nothing about the light's colour: its record and status say so; the
+    colour photo's do not."""
+    from PIL import Image
+
+    Image.open(photo_dir / "astronaut.png").convert("L").save(tmp_path / "grey.png")
+    res = invoke("fit-faces", tmp_path / "grey.png", photo_dir / "astronaut.png", "--out", tmp_path / "out",
+                 "--grid", GRID, "--json")
+    assert res.exit_code == 0, res.output
+    rows = status_rows(tmp_path / "out")
+    assert rows["grey.png"]["status"] == "ok" and "greyscale" in rows["grey.png"]["message"]
+    assert "greyscale" not in rows["astronaut.png"]["message"]
+    flags = {Path(r.source_path).name: r.meta["greyscale"] for r in iter_records(tmp_path / "out")}
+    assert flags == {"grey.png": True, "astronaut.png": False}
