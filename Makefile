@@ -79,7 +79,7 @@ ae-weights: $(STAMP)
 	$(BIN)/f2l train-ae build/ae_corpus/train --heldout build/ae_corpus/heldout --work-dir build/ae_train \
 		--epochs 5 --batch-size 16 --seed 0 --out plugins/f2l_builtin_models/data/ae_sky.npz
 
-# Sky autoencoder against the other built-in models (README "Sky autoencoder"): paper Table 1 —
+# Sky autoencoder against the other built-in models (docs/results/ae.md): paper Table 1 —
 # each model fitted to the 150 held-out skies of the `make ae-weights` corpus (regenerated alone,
 # identical; ~45 min on 2 cores) — then the same models estimated from 24 synthetic faces (~4 min).
 # The synthetic faces are Lambertian: read them so (--skin-gloss 0; the default is for real skin).
@@ -124,7 +124,7 @@ eval-fit-faces: $(STAMP)
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_fitted
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_true_geometry
 
-# Accuracy on faces f2l did not render (README "Accuracy"): EVAL_REAL_N path-traced cases
+# Accuracy on faces f2l did not render (README "Accuracy"; all tables: docs/results/eval_real.md): EVAL_REAL_N path-traced cases
 # (Mitsuba 3, Anny heads, real CC0 HDR maps and Hosek-Wilkie skies; ~10-13 s each on 2 cores: 22-28 min
 # for 128, 30-37 min in all), fitted and estimated with defaults, every built-in model, on fitted and
 # on the renderer's true geometry, scored with the baselines and the diagnostics; even cases tune,
@@ -145,7 +145,7 @@ eval-real: $(STAMP)
 	$(BIN)/f2l eval-real $(EVAL_REAL)/pbr --est $(EVAL_REAL)/est --est "true geometry=$(EVAL_REAL)/est_true_geometry" \
 		--out $(EVAL_REAL) $(FIT_TRUTH)
 
-# On maps no default was chosen on (README "On maps held out from tuning"): EVAL_HELDOUT_N cases
+# On maps no default was chosen on (docs/results/eval_real.md "On maps held out from tuning"): EVAL_HELDOUT_N cases
 # under the package's three other outdoor maps (city, sunrise, sunset; f2l.render.hdri.HELD_OUT_MAPS),
 # rendered, fitted and estimated like eval-real; every case reports (about 20 min on 2 cores:
 # rendering 12 min, fit, estimate and scoring 7 min).
@@ -160,7 +160,7 @@ eval-real-heldout: $(STAMP)
 	$(BIN)/f2l eval-real $(EVAL_HELDOUT)/pbr --est $(EVAL_HELDOUT)/est --est "true geometry=$(EVAL_HELDOUT)/est_true_geometry" \
 		--out $(EVAL_HELDOUT) --held-out $(FIT_TRUTH)
 
-# The face fit's share split into normals and occluders (README "The face fit's share"): sunsky
+# The face fit's share split into normals and occluders (docs/results/eval_real.md "The face fit's share"): sunsky
 # and ae on the same pixels with normals and visibility from the fitted mesh, the true body or
 # neither, and on an ideal photo (f2l's own render of the truth on the true mesh, with and without
 # the skin's gloss); table in
@@ -168,7 +168,7 @@ eval-real-heldout: $(STAMP)
 eval-real-geometry: $(STAMP)
 	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
 
-# The search's share of the sun error, or the objective's (README "Does the photo prefer the
+# The search's share of the sun error, or the objective's (docs/results/eval_real.md "Does the photo prefer the
 # truth?"): sunsky on every clear face, on the fitted mesh, the true one and an ideal photo (f2l's
 # own render of the truth on the true mesh), from its own starts and from a start at the true sun
 # (with and without the light prior), the elevation profile off; table in
@@ -176,7 +176,7 @@ eval-real-geometry: $(STAMP)
 eval-real-search: $(STAMP)
 	$(BIN)/f2l eval-real-search $(EVAL_REAL) -m sunsky
 
-# Ablations (README "Where the error comes from"): the first EVAL_ABL_N cases of eval-real
+# Ablations (docs/results/eval_real.md "Where the error comes from"): the first EVAL_ABL_N cases of eval-real
 # re-rendered with one thing taken away each (same people, poses, cameras and skies), then the same
 # fit + estimate + scoring; table in build/eval_real/ablations.md. Needs `make eval-real` first.
 EVAL_ABL_N ?= 32

@@ -154,7 +154,7 @@ def estimate(
         None, "--skin-reflection", min=0.0, max=1.0,
         help="The skin's reflection of the sky, sun and ground about the mirror direction (sun models; "
              "needs the records' 3-D points; default 0 = off). 0.01 is the value measured on make eval-real "
-             "(README); it costs about 15% more time a face, and on Lambertian faces (f2l's own renders) "
+             "(docs/experiments/accuracy_issue16.md); it costs about 15% more time a face, and on Lambertian faces (f2l's own renders) "
              "it is a bias."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:

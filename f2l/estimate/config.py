@@ -17,7 +17,7 @@ class EstimatorConfig:
     # 1e-3 it overrules the sky prior's colours and the light comes out too blue on `make eval-real`
     # (median R/G 0.82 of the truth's). Chosen on its tuning part from 1e-3, 3e-4, 1e-4, 3e-5
     # (MAE (s) 0.222, 0.211, 0.204, 0.215); reporting part MAE (s) 0.224 -> 0.211, R/G 0.82 -> 0.93.
-    # README "What each change bought". The latent-sky model keeps 1e-3 (its MAE (s) rose at 1e-4).
+    # docs/experiments/accuracy_issue16.md "What each change bought". The latent-sky model keeps 1e-3 (its MAE (s) rose at 1e-4).
     sun_albedo_prior_weight: float | None = 1e-4
     negativity_weight: float = 1.0
     max_iter: int = 18
@@ -63,7 +63,7 @@ class EstimatorConfig:
     # iterations; fits pinned 10 deg apart found a lower objective for 94 of the 128 faces of
     # `make eval-real`), and where the face cannot tell the elevation apart the posterior mean
     # hedges. Tuning part (fitted mesh): mean Sun-ang 12.3 -> 11.7 deg, MAE (s) 0.204 -> 0.195;
-    # reporting part 18.6 -> 14.8, 0.211 -> 0.202; +30% time. README "What each change bought".
+    # reporting part 18.6 -> 14.8, 0.211 -> 0.202; +30% time. docs/experiments/accuracy_issue16.md "What each change bought".
     sun_elevation_profile_deg: tuple[float, ...] = (10.0, 25.0, 40.0, 55.0, 70.0, 85.0)
     sun_profile_iters: int = 8
     sun_profile_temperature: float = 100.0
@@ -82,7 +82,7 @@ class EstimatorConfig:
     # eval-real` the compact-sun model's mean Sun-ang 15.4 -> 13.0 deg, the latent-sky model's 21.2 ->
     # 19.8; on the reporting half the former's median 12.9 -> 11.1 (mean unchanged), the latter's mean
     # 22.3 -> 21.4; +18-20% time in
-    # `f2l bench`. README "What each change bought".
+    # `f2l bench`. docs/experiments/accuracy_issue16.md "What each change bought".
     clipped_bounds: bool = True
     clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
     # sun models (compact-sun): the skin's specular highlight of the sun in the forward model
@@ -90,14 +90,14 @@ class EstimatorConfig:
     # sun_specular_max for the data term at every evaluation); needs the record's 3-D points. Off:
     # on `make eval-real` (128 cases) the data pick k_s > 0 on 67% of the faces on the true mesh
     # and 28% on the fitted one; on the true mesh the compact-sun model's mean Sun-ang 9.5 -> 9.1 deg
-    # (tuning part), MAE (s) -3%, on the fitted mesh no change. README "What each change bought".
+    # (tuning part), MAE (s) -3%, on the fitted mesh no change. docs/experiments/accuracy_issue16.md "What each change bought".
     sun_specular: bool = False
     sun_specular_roughness: float = 0.5
     sun_specular_max: float = 0.15
     # sun models (compact-sun): the skin's gloss, an achromatic albedo g added to its diffuse one
     # in the forward model, s = (rho + g) ⊙ (T l). Skin reflects a few percent of the light at its
     # surface untinted by the skin, so a photo's skin is less red and bluer than its albedo
-    # (README, the colour bullet under eval-real's table), and a Lambertian reading gives that shift to the light
+    # (docs/results/eval_real.md, the colour bullet under its first table), and a Lambertian reading gives that shift to the light
     # (make eval-real: R/G 0.92, B/G 1.09 of the truth's). The data term cannot tell g from rho; the
     # priors (on rho and on the light) split them. Tuning part (fitted mesh), g = 0 / 0.03 / 0.06 /
     # 0.1 / 0.15: MAE (s) 0.182 / 0.174 / 0.162 / 0.154 / 0.151, mean Sun-ang 10.3 / 10.8 / 11.1 /
@@ -105,7 +105,7 @@ class EstimatorConfig:
     # 0.06 RMSE (s) +14%, at 0.05 every metric within 10%). 0.05: tuning part 10.2 deg / 0.163,
     # reporting part 14.2 -> 14.4 deg, MAE (s) 0.197 -> 0.174. On Lambertian faces (f2l's own
     # renders) it is a colour bias, largest on dark skin: 40 of them MAE (s) 0.048 -> 0.072; there
-    # use 0 (`f2l estimate --skin-gloss 0`). README "What each change bought".
+    # use 0 (`f2l estimate --skin-gloss 0`). docs/experiments/accuracy_issue16.md "What each change bought".
     skin_gloss: float = 0.05
     # sun models (compact-sun): the skin's reflection of the environment about the mirror
     # direction, g_r pi ∫ K_p(r·w) l(w) dw with a normalised Phong lobe of exponent p
@@ -114,7 +114,7 @@ class EstimatorConfig:
     # 0.01 gives mean Sun-ang 10.2 -> 9.1 deg, MAE (s) 0.163 -> 0.151 (reporting part 14.4 -> 14.8,
     # 0.174 -> 0.164). Off by default (`f2l estimate --skin-reflection 0.01`): on Lambertian faces
     # (f2l's own renders) it is a bias (`make demo`: Sun+Sky MAE (s) 0.043 -> 0.096), and it costs
-    # +15% time a face against issue 16's time bound. README "The skin's reflection of the environment".
+    # +15% time a face against issue 16's time bound. docs/experiments/accuracy_issue16.md "The skin's reflection of the environment".
     skin_reflection: float = 0.0
     skin_reflection_exponent: float = 16.0
 

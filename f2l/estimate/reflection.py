@@ -37,7 +37,7 @@ class SkinReflection:
     on grids of 64 rows or more (blocks of 22.5° at most on 64 × 128): the p = 16 lobe is 34°
     wide at half its peak, so such blocks keep the smooth sky's share, and the sun, the term's
     sharp part, stays exact. On the eval-real faces the pooled term gives the same estimates
-    within their noise (README) at a quarter of the product's cost. The kernels are summed exactly
+    within their noise (docs/experiments/accuracy_issue16.md) at a quarter of the product's cost. The kernels are summed exactly
     over each pooled block's texels (float32, on a grid twice as coarse where that keeps texels of
     5.6° or less).
     """

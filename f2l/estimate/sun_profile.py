@@ -11,7 +11,7 @@ the estimate's sun direction is the normalised Σ w_k d_k (d_k the copies' sun d
 probe the mixture Σ w_k l_k (the estimator renders it), and its parameters those of the lowest
 L. Where the face's shading fixes the elevation the weights fall on one start; where it does not
 (a sun behind the head) the direction hedges between the elevations the face allows. Why it is
-needed: the free fit stalls in elevation (README, "Does the photo prefer the truth?").
+needed: the free fit stalls in elevation (docs/results/eval_real.md, "Does the photo prefer the truth?").
 """
 
 from __future__ import annotations

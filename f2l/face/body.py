@@ -4,7 +4,7 @@ The fitted mesh is MediaPipe's face mask only, so every face pixel sees the whol
 hemisphere. A real person's neck, shoulders and chest hide much of it: the ground, which
 reflects the sun, and a low sun itself. On the true geometry of the independent evaluation set
 (``make eval-real``), adding the true body below the chin to the fitted mesh's visibility
-lowered sunsky's mean sun error on both parts (README "What each change bought"). This module
+lowered sunsky's mean sun error on both parts (docs/experiments/accuracy_issue16.md "What each change bought"). This module
 stands in for that body with two closed elliptic cylinders of average adult dimensions (not
 fitted to any renderer's body).
 

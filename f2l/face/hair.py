@@ -20,7 +20,7 @@ lower bound sun models read it as (``EstimatorConfig.clipped_bounds``).
 In the shade of a blue sky skin is nearly neutral, so there light hair passes; dark hair does not.
 On ``make eval-real`` (Anny heads, whose hair starts above the band) the band was left out whole
 until 2026-11-27; reading it took the tuning part's mean Sun-ang from 11.7 to 10.3 deg (sunsky)
-and from 17.1 to 10.8 deg (ae), the reporting part's from 14.8 to 14.2 and 19.9 to 16.9 (README,
+and from 17.1 to 10.8 deg (ae), the reporting part's from 14.8 to 14.2 and 19.9 to 16.9 (docs/experiments/accuracy_issue16.md,
 "What each change bought").
 """
 

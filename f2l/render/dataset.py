@@ -270,34 +270,48 @@ def render_faces(out: Path, n: int, seed: int = 0, options: RenderOptions = Rend
     A case that fails is recorded with its reason in the summary and ``render_status.json``; the
     others go on.
     """
+    return render_set(out, range(start, start + n), lambda index: draw_case(seed, index, options),
+                      lambda spec: render_case(spec, options), options,
+                      summary={"seed": seed}, status_file="render_status.json", desc="render-faces", unit="face",
+                      progress=progress)
+
+
+def render_set(out: Path, indices, draw, render, options: RenderOptions, *, summary: dict, status_file: str,
+               desc: str, unit: str, progress: bool = True) -> dict:
+    """Draw (``draw(index)``), render (``render(spec)``) and write every case of ``indices`` into
+    ``out``; a case whose meta exists is skipped (resumable) and a case that fails is recorded
+    with its reason in the summary and ``out/status_file``, the others going on. ``summary``
+    holds the caller's own keys; ``faces_rendered`` counts the rendered photos' faces."""
     from f2l.io.atomic import write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    indices = range(start, start + n)
     iterator = indices
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(indices, unit="face", desc="render-faces")
-    status, t0, rendered_s = {}, time.perf_counter(), []
+        iterator = tqdm(indices, unit=unit, desc=desc)
+    status, t0, rendered_s, faces = {}, time.perf_counter(), [], 0
     for index in iterator:
-        spec = draw_case(seed, index, options)
+        spec = draw(index)
         fid = spec["face_id"]
         if (out / "meta" / f"{fid}.json").is_file():
             status[fid] = "exists"
             continue
         t = time.perf_counter()
         try:
-            _write_case(out, spec, options, render_case(spec, options))
+            rendered = render(spec)
+            _write_case(out, spec, options, rendered)
             status[fid] = "ok"
+            faces += len(rendered["meta"].get("faces", [None]))
             rendered_s.append(time.perf_counter() - t)
         except Exception as exc:  # noqa: BLE001 - one bad case never stops the set
             status[fid] = f"error: {type(exc).__name__}: {exc}"
-    summary = {"out": str(out), "cases": len(status), "seed": seed, "options": asdict(options),
-               "ok": sum(v == "ok" for v in status.values()), "skipped_existing": sum(v == "exists" for v in status.values()),
+    summary = {"out": str(out), "cases": len(status), **summary, "options": asdict(options),
+               "ok": sum(v == "ok" for v in status.values()), "faces_rendered": faces,
+               "skipped_existing": sum(v == "exists" for v in status.values()),
                "errors": {k: v for k, v in status.items() if v.startswith("error")},
                "elapsed_s": round(time.perf_counter() - t0, 2),
                "seconds_per_case": round(float(np.mean(rendered_s)), 2) if rendered_s else None}
-    write_text_atomic(out / "render_status.json", json.dumps({"summary": summary, "status": status}, indent=1))
+    write_text_atomic(out / status_file, json.dumps({"summary": summary, "status": status}, indent=1))
     return summary

@@ -25,7 +25,7 @@ Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid 
   sun as close as a good face estimate costs it.
 
 The cases are split by index: even = the tuning part (look at it freely while changing f2l),
-odd = the reporting part (the README's figures). Each row carries its breakdown keys: sky source,
+odd = the reporting part (the figures of the README and docs/results/eval_real.md). Each row carries its breakdown keys: sky source,
 sun elevation, sun behind the head.
 
 Diagnostics (not §5.1 metrics; they say where the error of each method comes from), per row:

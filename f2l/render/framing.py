@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from f2l.render.dataset import PROBE_GRID, RenderOptions, _lighting, _rotation, _stream, _sun_of, _write_case, expose, render_settings
+from f2l.render.dataset import PROBE_GRID, RenderOptions, _lighting, _rotation, _stream, _sun_of, expose, render_set, render_settings
 
 FRAMINGS = ("portrait", "half", "full", "group")
 HEAD_WIDTH_CM = 16.0
@@ -171,40 +171,10 @@ def render_framed(out: Path, framing: str, n: int, seed: int = 0, options: Rende
                   start: int = 0, progress: bool = True) -> dict:
     """Render framed cases ``start .. start + n − 1`` into ``out``; resumable; a failing case is
     recorded with its reason and the others go on."""
-    from f2l.io.atomic import write_text_atomic
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    indices = range(start, start + n)
-    iterator = indices
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(indices, unit="photo", desc=f"render-faces ({framing})")
-    status, t0, rendered_s, faces = {}, time.perf_counter(), [], 0
-    for index in iterator:
-        spec = draw_framed_case(framing, seed, index, options)
-        fid = spec["face_id"]
-        if (out / "meta" / f"{fid}.json").is_file():
-            status[fid] = "exists"
-            continue
-        t = time.perf_counter()
-        try:
-            rendered = render_framed_case(spec, options)
-            _write_case(out, spec, options, rendered)
-            status[fid] = "ok"
-            faces += len(rendered["meta"]["faces"])
-            rendered_s.append(time.perf_counter() - t)
-        except Exception as exc:  # noqa: BLE001 - one bad case never stops the set
-            status[fid] = f"error: {type(exc).__name__}: {exc}"
-    summary = {"out": str(out), "framing": framing, "cases": len(status), "seed": seed, "options": asdict(options),
-               "ok": sum(v == "ok" for v in status.values()), "faces_rendered": faces,
-               "skipped_existing": sum(v == "exists" for v in status.values()),
-               "errors": {k: v for k, v in status.items() if v.startswith("error")},
-               "elapsed_s": round(time.perf_counter() - t0, 2),
-               "seconds_per_case": round(float(np.mean(rendered_s)), 2) if rendered_s else None}
-    write_text_atomic(out / f"render_status_{framing}.json", json.dumps({"summary": summary, "status": status}, indent=1))
-    return summary
+    return render_set(out, range(start, start + n), lambda index: draw_framed_case(framing, seed, index, options),
+                      lambda spec: render_framed_case(spec, options), options,
+                      summary={"framing": framing, "seed": seed}, status_file=f"render_status_{framing}.json",
+                      desc=f"render-faces ({framing})", unit="photo", progress=progress)
 
 
 WIDTH_BANDS = ((40, 80), (80, 160), (160, 320), (320, float("inf")))
@@ -246,10 +216,8 @@ def accuracy_by_face_width(render_dirs, fitted, est_dir) -> dict:
     refused = {}
     status = Path(fitted) / "status" / "fit_faces.parquet"
     if status.is_file():
-        import json as _json
-
         for row in pq.read_table(status).to_pylist():
-            refused[Path(row["source_path"]).stem] = _json.loads(row["rejected_json"])
+            refused[Path(row["source_path"]).stem] = json.loads(row["rejected_json"])
     estimates = pq.read_table(Path(est_dir) / "estimates.parquet").to_pylist()
     by_face: dict[str, list[dict]] = {}
     for est in estimates:
