@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths fuzz bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,12 @@ test-cpu-paths: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/f2l bench --faces 1
+
+# Every reader of outside input fed 2,000 mutated files each under a 2 GB address-space limit
+# (tests/fuzzing.py; `make test` runs 60 per reader): ~3 min on 2 cores. Replay a failure with
+# `$(BIN)/python tests/fuzzing.py --target T --first CASE --cases 1 --seed 1`.
+fuzz: $(STAMP)
+	$(BIN)/python tests/fuzzing.py --cases 2000 --seed 1 --memory-gb 2
 
 # Face detection on real photographs framed wide (docs/experiments/face_detection.md): recall by face
 # width, false detections per 100 face-free photos, time by photo size (~1 min on 2 cores)

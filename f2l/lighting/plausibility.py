@@ -49,9 +49,9 @@ def probe_problem(probe: np.ndarray, *, coverage: np.ndarray | None = None,
     lit = p[:sky].max(axis=2) > 0
     if coverage is not None:
         lit &= np.asarray(coverage, bool)[:sky]
-    fraction = float((sa * lit).sum() / sa.sum())
-    if not lit.any() or float(p[:sky].max()) <= 0:
+    if float(p[:sky].max()) <= 0:
         return "black: no light in the upper hemisphere"
+    fraction = float((sa * lit).sum() / sa.sum())
     if fraction < min_sky_coverage:
         return (f"covers {100 * fraction:.1f}% of the upper hemisphere (at least "
                 f"{100 * min_sky_coverage:.0f}% needed)")

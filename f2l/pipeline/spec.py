@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tomllib
 from importlib import resources
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -131,10 +130,12 @@ def load_pipeline(path: str | os.PathLike | None = None) -> Pipeline:
         data = path.read_bytes()
     except OSError as exc:
         raise PipelineError(f"{path}: cannot read pipeline file ({exc.strerror or exc})") from None
+    from f2l.io.bounded import InputError, load_toml
+
     try:
-        config = tomllib.loads(data.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise PipelineError(f"{path}: not valid TOML ({exc})") from None
+        config = load_toml(data, str(path))
+    except InputError as exc:
+        raise PipelineError(str(exc)) from None
     spec = parse_pipeline(config, source=str(path), file_sha256=hashlib.sha256(data).hexdigest())
     return replace(spec, source=path.name)
 
