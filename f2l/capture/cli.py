@@ -14,6 +14,7 @@ def ingest_cmd(
     session_gap_min: float = typer.Option(30.0, help="Flat folders: a gap longer than this (minutes) starts a new session."),
     bracket_gap_s: float = typer.Option(15.0, help="Frames further apart than this (s) are not one bracket."),
     detect_roles: bool = typer.Option(True, "--detect-roles/--no-detect-roles", help="Run the face/chart detectors on files no folder name or session.toml gives a role."),
+    allow_outside: bool = typer.Option(False, "--allow-outside", help="Let a session.toml name files (a flat field) outside its session folder: absolute paths, '..', symlinks out. Refused by default."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental)."""
@@ -22,7 +23,7 @@ def ingest_cmd(
     try:
         summary = run_ingest(root, work, session_gap_min=session_gap_min,
                              bracket_gap_s=bracket_gap_s, detect_roles=detect_roles,
-                             progress=not json_out)
+                             progress=not json_out, allow_outside=allow_outside)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)
@@ -41,7 +42,7 @@ def _print_summary(summary) -> None:
                + (" (nothing to do)" if summary.read == 0 else ""))
     typer.echo("status: " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items()))
     typer.echo("roles:  " + ", ".join(f"{k} {v}" for k, v in summary.by_role.items()))
-    for problem in summary.session_problems:
+    for problem in summary.session_problems + summary.warnings:
         typer.echo(f"f2l: warning: {problem}", err=True)
     _print_brackets(summary.bracket_list)
     rows = pq.read_table(summary.table, columns=["status", "message"]).to_pylist()

@@ -31,7 +31,26 @@ What a row says about a file, and how it is decided:
   ``view_json`` (a flat-field file as a path relative to the capture root, with its SHA-256). An
   invalid TOML is reported, with its file and key, in the summary (``session_problems``, printed
   by the CLI) and in ``session_problem`` of every row of its session, which is then ingested
-  without it.
+  without it. The TOML is read with bounds (:func:`f2l.io.bounded.load_toml`: at most 16 MiB,
+  nesting 32 deep, strings of 65,536 characters, no NaN or infinite number), so a hostile file is
+  a session problem too, never a crash.
+* **hostile input** (each is reported, naming the file and the key, and the rest of the tree is
+  ingested):
+
+  - a sky frame whose lens cannot place its view (:func:`f2l.capture.lens.lens_from_view`:
+    missing, inconsistent or implausible values, e.g. a focal length of 1e308 px or a principal
+    point far outside the frame) is an ``error`` row, checked on the frame's own size;
+  - a file named in the session TOML (a flat field's ``file``) must stay inside the session
+    folder: an absolute path, a path with ``..`` that leaves it, or a symlink (the file or a
+    folder above it) that resolves outside it makes the rows that use it ``error`` rows and is
+    never opened, unless the user passes ``--allow-outside``; a missing or unreadable flat field
+    is an ``error`` too. The flat-field file itself gets role ``other`` (role source ``toml``),
+    never ``probe``;
+  - a ``[[shots]]`` ``files`` glob that matches no file of the session is a warning
+    (``warnings`` in the summary, printed by the CLI): the frames it meant get no orientation;
+  - a file whose name is not valid UTF-8 is an ``error`` row whose path is the name with the
+    undecodable bytes escaped (``\\xff``); it is never opened (rename it to ingest it);
+  - a file that cannot be stat'ed (a dangling symlink) is an ``error`` row.
 
 Incremental: ``WORK/captures.parquet`` from an earlier run is read first; a file whose relative
 path, size and mtime (ns) match a row written by the same :data:`INGEST_VERSION` is not opened
@@ -46,7 +65,8 @@ import json
 import logging
 import math
 import os
-import tomllib
+import stat as stat_mod
+from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -83,6 +103,7 @@ class IngestSummary:
     sessions: int = 0
     brackets: int = 0
     session_problems: list = field(default_factory=list)  # "session: why its session.toml was not used"
+    warnings: list = field(default_factory=list)  # "session: what in its session.toml did not apply"
     bracket_list: list = field(default_factory=list)  # one dict per bracket (bracket_summary)
 
     def to_json(self) -> dict:
@@ -299,24 +320,138 @@ def _folder_role(rel: Path) -> str | None:
 
 
 def load_session_toml(folder: Path) -> tuple[dict, str]:
-    """(config, problem): the folder's session.toml validated against schema ``session``;
+    """(config, problem): the folder's session.toml, read with bounds (:func:`f2l.io.bounded.load_toml`:
+    size, nesting depth, string length, finite numbers) and validated against schema ``session``;
     ({}, "") when there is none, ({}, reason naming the file and key) when it is invalid."""
     import jsonschema
 
+    from f2l.io.bounded import MAX_TEXT_BYTES, InputError, load_toml
     from f2l.io.schema import load_schema
 
     path = folder / SESSION_TOML
     if not path.is_file():
         return {}, ""
+    shown = shown_path(path)
     try:
-        config = tomllib.loads(path.read_text(encoding="utf-8"))
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_TEXT_BYTES + 1)  # load_toml refuses more than MAX_TEXT_BYTES
+        config = load_toml(data, shown)
         jsonschema.validate(config, load_schema("session"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        return {}, f"{path}: not valid TOML ({exc})"
+    except InputError as exc:
+        return {}, str(exc)
+    except OSError as exc:
+        return {}, f"{shown}: cannot be read ({exc.strerror or exc})"
     except jsonschema.ValidationError as exc:
         where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        return {}, f"{path}: {where}: {exc.message}{_toml_hint(exc)}"
+        return {}, f"{shown}: {where}: {exc.message}{_toml_hint(exc)}"
     return config, ""
+
+
+def shown_path(path: str | os.PathLike) -> str:
+    """A path as valid UTF-8 text: bytes of a file name that are not UTF-8 (Python holds them as
+    surrogate escapes) shown as ``\\xff``."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        return os.fsencode(text).decode("utf-8", "backslashreplace")
+
+
+def is_utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+        return True
+    except UnicodeEncodeError:
+        return False
+
+
+def matched_shot(config: dict, rel_in_session: str) -> int | None:
+    """Index of the first ``[[shots]]`` entry whose ``files`` glob matches, None when none does."""
+    for i, shot in enumerate(config.get("shots", [])):
+        if fnmatch.fnmatch(rel_in_session, shot["files"]):
+            return i
+    return None
+
+
+def key_where(config: dict, shot: int | None, key: str) -> str:
+    """Where a view's lens key comes from in the session TOML: ``shots/<i>/<key>`` when the
+    matched shot sets it, else ``lens/<key>`` (the key as given when neither does)."""
+    if shot is not None and key in config.get("shots", [])[shot]:
+        return f"shots/{shot}/{key}"
+    if key in config.get("lens", {}):
+        return f"lens/{key}"
+    return key or "lens"
+
+
+def unmatched_globs(config: dict, rels_in_session: list[str]) -> list[str]:
+    """"shots/<i>/files = '<glob>': ..." for each ``[[shots]]`` glob that matches none of the
+    session's files, or whose files all an earlier shot already took (first match wins)."""
+    shots = config.get("shots", [])
+    taken = Counter(matched_shot(config, rel) for rel in rels_in_session)
+    out = []
+    for i, shot in enumerate(shots):
+        if taken[i]:
+            continue
+        glob = shot["files"]
+        if any(fnmatch.fnmatch(rel, glob) for rel in rels_in_session):
+            out.append(f"shots/{i}/files = {glob!r}: every file it matches is taken by an earlier shot "
+                       f"(the first match wins); the shot applies to no file")
+        else:
+            out.append(f"shots/{i}/files = {glob!r} matches no file of the session (globs match paths relative "
+                       f"to the session folder, e.g. 'sky/*'); the shot applies to no file")
+    return out
+
+
+def session_files(config: dict) -> list[tuple[str, str]]:
+    """(key path, file name) of every file a session TOML names: ``lens/falloff/file`` and
+    ``shots/<i>/falloff/file``."""
+    out = []
+    for where, table in [("lens", config.get("lens", {}))] + [
+            (f"shots/{i}", shot) for i, shot in enumerate(config.get("shots", []))]:
+        falloff = table.get("falloff")
+        if isinstance(falloff, dict) and falloff.get("file"):
+            out.append((f"{where}/falloff/file", str(falloff["file"])))
+    return out
+
+
+class OutsideError(ValueError):
+    """A path named in a session TOML that leaves the session folder."""
+
+
+def resolve_session_file(folder: Path, name: str, *, allow_outside: bool = False) -> tuple[Path, bool]:
+    """(path, outside) of a file named in ``folder``'s session TOML, relative to ``folder``:
+    OutsideError for an absolute path, a ``..`` that leaves the folder or a symlink (the file or a
+    folder above it inside the session) that resolves outside it, unless ``allow_outside``
+    (then ``outside`` says whether it does)."""
+    from pathlib import PurePosixPath, PureWindowsPath
+
+    absolute = (PurePosixPath(name).is_absolute() or PureWindowsPath(name).is_absolute()
+                or bool(PureWindowsPath(name).drive))
+    path = Path(name) if absolute else folder / name
+    base = os.path.realpath(folder)
+    real = os.path.realpath(path)
+    inside = not absolute and os.path.commonpath([base, real]) == base
+    if inside or allow_outside:
+        return path, not inside
+    if absolute:
+        raise OutsideError(f"{name!r} is an absolute path; files named in a session.toml must be inside the "
+                           f"session folder")
+    if os.path.normpath(name).split(os.sep)[0] == os.pardir:
+        raise OutsideError(f"{name!r} leaves the session folder {shown_path(folder)}")
+    raise OutsideError(f"{name!r} resolves to {shown_path(real)} through a symbolic link, outside the session "
+                       f"folder {shown_path(base)}")
+
+
+def regular_file(path: Path) -> str:
+    """"" when ``path`` is a readable regular file, else why not (missing, a folder, a FIFO, ...)."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return "not found" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
+    if not stat_mod.S_ISREG(st.st_mode):
+        return "not a regular file"
+    return ""
 
 
 _TOP_LEVEL_KEYS = ("probe_azimuth_deg", "timezone", "lens", "shots")
@@ -340,10 +475,9 @@ def view_for(config: dict, rel_in_session: str) -> dict:
     view.update({k: v for k, v in lens.items()})
     if "probe_azimuth_deg" in config:
         view["probe_azimuth_deg"] = config["probe_azimuth_deg"]
-    for shot in config.get("shots", []):
-        if fnmatch.fnmatch(rel_in_session, shot["files"]):
-            view.update({k: v for k, v in shot.items() if k != "files"})
-            break
+    shot = matched_shot(config, rel_in_session)
+    if shot is not None:
+        view.update({k: v for k, v in config["shots"][shot].items() if k != "files"})
     return view
 
 

@@ -28,38 +28,84 @@ that see the scene, i.e. inside the image circle, must have gain > 0):
   :func:`f2l.io.probe_io.read_hdr_image` reads; the full frame's size), normalised to 1 at the
   principal point (mean over a disc of 1% of the short side).
 - ``vignetting = [k1, k2, k3]`` (the earlier key) is the polynomial on the half diagonal.
+
+Plausible values (a session.toml is input from outside; :func:`lens_from_view` refuses with a
+:class:`LensError` naming the key, and ``f2l ingest`` checks every sky frame's lens with it, so a
+lens that cannot place its view is an ingest error, not a merge crash): every number finite; a
+focal length in px within :data:`FOCAL_PX_PER_LONG_SIDE` × the frame's long side (however it was
+given: ``focal_length_px``, mm with ``sensor_width_mm``, ``fov_deg``, a COLMAP model's fx / fy);
+``focal_length_mm`` within :data:`FOCAL_LENGTH_MM_RANGE`, ``sensor_width_mm`` within
+:data:`SENSOR_WIDTH_MM_RANGE`; the principal point inside the frame or at most
+:data:`PRINCIPAL_POINT_MARGIN` × its width / height outside it; an image-circle radius within
+:data:`IMAGE_CIRCLE_PER_LONG_SIDE` × the long side; fall-off coefficients and COLMAP distortion
+parameters bounded by :data:`FALLOFF_COEFFICIENT_MAX` / :data:`COLMAP_EXTRA_PARAM_MAX`.
+
+A flat-field ``file`` is read relative to the capture root only when it stays inside it (no
+absolute path, no ``..``, no symlink out of the root: :func:`flat_field_path`), unless ingest
+recorded that the user allowed paths outside (``f2l ingest --allow-outside``).
 """
 
 from __future__ import annotations
 
 import math
+import numbers
+import os
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
 from f2l.capture.cameras import ViewCamera, equisolid_coefficients
 
-__all__ = ["Lens", "Falloff", "lens_from_view", "PROJECTIONS", "FISHEYES", "LensError"]
+__all__ = ["Lens", "Falloff", "lens_from_view", "PROJECTIONS", "FISHEYES", "LensError", "flat_field_path",
+           "FOCAL_PX_PER_LONG_SIDE", "FOCAL_LENGTH_MM_RANGE", "SENSOR_WIDTH_MM_RANGE", "PRINCIPAL_POINT_MARGIN",
+           "IMAGE_CIRCLE_PER_LONG_SIDE", "FALLOFF_COEFFICIENT_MAX", "COLMAP_EXTRA_PARAM_MAX"]
 
 PROJECTIONS = ("equidistant", "equisolid", "rectilinear")
 FISHEYES = ("equidistant", "equisolid")
 RADIUS_NAMES = ("image_circle", "half_diagonal", "half_width", "half_height")
 
+FOCAL_PX_PER_LONG_SIDE = (1e-2, 1e2)
+"""Plausible focal length in px as a multiple of the frame's long side (px per px): 0.01 × is a
+fisheye whose whole hemisphere spans 3% of the frame, 100 × a rectilinear view 0.6° across (a
+2000 mm lens on a 36 mm-wide frame is 56 ×)."""
+FOCAL_LENGTH_MM_RANGE = (0.1, 1e4)
+"""Plausible ``focal_length_mm`` (mm)."""
+SENSOR_WIDTH_MM_RANGE = (0.5, 1e3)
+"""Plausible ``sensor_width_mm`` (mm): a phone's 1/4" sensor is ~3.6 mm, 8 × 10" film 254 mm."""
+PRINCIPAL_POINT_MARGIN = 0.5
+"""The principal point may lie at most this fraction of the frame's width (x) / height (y) outside
+the frame (a shifted or cropped lens); farther, the description is a mistake."""
+IMAGE_CIRCLE_PER_LONG_SIDE = (1e-2, 1e1)
+"""Plausible ``image_circle_radius_px`` and polynomial fall-off ``radius`` in px, as a multiple
+of the frame's long side."""
+FALLOFF_COEFFICIENT_MAX = 1e2
+"""Largest |k| of a polynomial fall-off (dimensionless; real lenses are within ±2)."""
+COLMAP_EXTRA_PARAM_MAX = 1e3
+"""Largest |value| of a COLMAP model's parameters other than focal lengths and principal point
+(distortion terms, dimensionless; real ones are within ±10)."""
+
 
 class LensError(ValueError):
-    """A lens description that cannot place the view; the message names the key."""
+    """A lens description that cannot place the view; the message names the key, ``key`` holds
+    it (the lens key, e.g. ``focal_length_px`` or ``falloff``; "" when none applies)."""
+
+    def __init__(self, message: str, key: str = "") -> None:
+        super().__init__(message)
+        self.key = key
 
 
 @dataclass(frozen=True)
 class Falloff:
     """``model`` "polynomial" (``coefficients``, ``radius_px``), "cos4" or "flat_field" (``file``,
-    a path relative to the capture root)."""
+    a path relative to the capture root; ``outside_allowed``: ingest ran with ``--allow-outside``
+    and recorded the path as the user gave it)."""
 
     model: str
     coefficients: tuple[float, ...] = ()
     radius_px: float = 0.0
     file: str | None = None
+    outside_allowed: bool = False
 
 
 @dataclass(frozen=True)
@@ -127,7 +173,7 @@ class Lens:
     def _flat_field(self, root, k, crop_x, crop_y, h, w) -> np.ndarray:
         from f2l.io.probe_io import read_hdr_image
 
-        path = Path(self.falloff.file) if root is None else Path(root) / self.falloff.file
+        path = flat_field_path(self.falloff, root)
         flat = read_hdr_image(path).astype(np.float64).mean(axis=2)
         if flat.shape != (self.height, self.width):
             raise LensError(f"{path}: flat field is {flat.shape[1]}x{flat.shape[0]}, the frames are "
@@ -142,23 +188,72 @@ class Lens:
         return block.reshape(h, k, w, k).mean(axis=(1, 3)) / centre
 
 
-def _number(view: dict, key: str) -> float | None:
+def flat_field_path(falloff: Falloff, root: str | os.PathLike | None) -> Path:
+    """The file of a flat-field fall-off: ``root / file`` (``root`` the capture root), refused
+    (LensError) where ``file`` is absolute, climbs with ``..`` or resolves (symlinks followed)
+    outside ``root``, unless ``falloff.outside_allowed``; ``file`` itself when ``root`` is None
+    (a caller's own path)."""
+    name = str(falloff.file)
+    if root is None:
+        return Path(name)
+    if falloff.outside_allowed:
+        return Path(root) / name
+    hint = "f2l ingest --allow-outside allows it"
+    if PurePosixPath(name).is_absolute() or PureWindowsPath(name).is_absolute() or PureWindowsPath(name).drive:
+        raise LensError(f"falloff file {name!r} is an absolute path, not a path inside the capture folder ({hint})",
+                        "falloff")
+    if ".." in PurePosixPath(name.replace("\\", "/")).parts:
+        raise LensError(f"falloff file {name!r} leaves the capture folder ({hint})", "falloff")
+    base = os.path.realpath(root)
+    real = os.path.realpath(Path(root) / name)
+    if os.path.commonpath([base, real]) != base:
+        raise LensError(f"falloff file {name!r} resolves to {real}, outside the capture folder {base} "
+                        f"(a symbolic link; {hint})", "falloff")
+    return Path(root) / name
+
+
+def _number(view: dict, key: str, lo: float | None = None, hi: float | None = None,
+            unit: str = "") -> float | None:
     value = view.get(key)
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise LensError(f"{key} must be a positive number, got {value!r}")
+        raise LensError(f"{key} must be a positive number, got {value!r}", key)
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise LensError(f"{key} = {value:g}{unit} is implausible (expected {lo:g}..{hi:g}{unit})", key)
     return float(value)
+
+
+def _check_focal(focal: float, key: str, width: int, height: int) -> None:
+    lo, hi = (f * max(width, height) for f in FOCAL_PX_PER_LONG_SIDE)
+    if not (math.isfinite(focal) and lo <= focal <= hi):
+        raise LensError(f"{key} gives a focal length of {focal:g} px, implausible for a {width}x{height} frame "
+                        f"(expected {lo:g}..{hi:g} px: {FOCAL_PX_PER_LONG_SIDE[0]:g}..{FOCAL_PX_PER_LONG_SIDE[1]:g} x "
+                        f"the long side)", key)
+
+
+def _check_principal_point(cx: float, cy: float, key: str, width: int, height: int) -> None:
+    m = PRINCIPAL_POINT_MARGIN
+    if not (math.isfinite(cx) and math.isfinite(cy) and -m * width <= cx <= (1 + m) * width
+            and -m * height <= cy <= (1 + m) * height):
+        raise LensError(f"{key} [{cx:g}, {cy:g}] is outside the {width}x{height} frame (at most {m:g} x its "
+                        f"width / height outside it is accepted)", key)
+
+
+def _check_frame(width, height) -> None:
+    if not (isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width > 0 and height > 0):
+        raise LensError(f"the frame's size {width!r} x {height!r} px is not known")
 
 
 def _focal_px(view: dict, width: int, exif_focal_mm: float | None) -> tuple[float | None, str]:
     """(focal length in full-frame px or None, where it came from)."""
     if "focal_length_px" in view:
         return _number(view, "focal_length_px"), "focal_length_px"
-    sensor = _number(view, "sensor_width_mm")
-    mm = _number(view, "focal_length_mm")
+    sensor = _number(view, "sensor_width_mm", *SENSOR_WIDTH_MM_RANGE, " mm")
+    mm = _number(view, "focal_length_mm", *FOCAL_LENGTH_MM_RANGE, " mm")
     if mm is not None and sensor is None:
-        raise LensError("focal_length_mm needs sensor_width_mm (the frame's width in mm) to give pixels")
+        raise LensError("focal_length_mm needs sensor_width_mm (the frame's width in mm) to give pixels",
+                        "focal_length_mm")
     if sensor is not None:
         if mm is None and exif_focal_mm:
             mm = float(exif_focal_mm)
@@ -189,70 +284,94 @@ def _falloff(view: dict, circle_px: float | None, width: int, height: int) -> Fa
         return Falloff("cos4")
     if model == "flat_field":
         if not spec.get("file"):
-            raise LensError("falloff model flat_field needs file = \"...\" (relative to the session folder)")
-        return Falloff("flat_field", file=str(spec["file"]))
+            raise LensError("falloff model flat_field needs file = \"...\" (relative to the session folder)",
+                            "falloff")
+        return Falloff("flat_field", file=str(spec["file"]), outside_allowed=spec.get("allow_outside") is True)
     if model != "polynomial":
-        raise LensError(f"falloff model must be polynomial, cos4 or flat_field, got {model!r}")
+        raise LensError(f"falloff model must be polynomial, cos4 or flat_field, got {model!r}", "falloff")
     coeffs = tuple(float(c) for c in spec.get("coefficients", ()))
+    if not all(math.isfinite(c) and abs(c) <= FALLOFF_COEFFICIENT_MAX for c in coeffs):
+        raise LensError(f"falloff coefficients {list(coeffs)} must be finite and at most {FALLOFF_COEFFICIENT_MAX:g} "
+                        f"in magnitude", "falloff")
     radius = spec.get("radius", "image_circle" if circle_px else "half_diagonal")
     named = {"half_diagonal": 0.5 * math.hypot(width, height), "half_width": 0.5 * width,
              "half_height": 0.5 * height, "image_circle": circle_px}
     if isinstance(radius, str):
         if radius not in named:
-            raise LensError(f"falloff radius must be one of {', '.join(RADIUS_NAMES)} or pixels, got {radius!r}")
+            raise LensError(f"falloff radius must be one of {', '.join(RADIUS_NAMES)} or pixels, got {radius!r}",
+                            "falloff")
         if named[radius] is None:
-            raise LensError("falloff radius image_circle needs a fisheye lens with an image circle")
+            raise LensError("falloff radius image_circle needs a fisheye lens with an image circle", "falloff")
         radius_px = float(named[radius])
     else:
         radius_px = float(radius)
-        if not (math.isfinite(radius_px) and radius_px > 0):
-            raise LensError(f"falloff radius must be positive, got {radius!r}")
+        lo, hi = (f * max(width, height) for f in IMAGE_CIRCLE_PER_LONG_SIDE)
+        if not (math.isfinite(radius_px) and lo <= radius_px <= hi):
+            raise LensError(f"falloff radius must be {lo:g}..{hi:g} px for a {width}x{height} frame, got {radius!r}",
+                            "falloff")
     return Falloff("polynomial", coeffs, radius_px)
 
 
 def lens_from_view(view: dict, width: int, height: int, exif_focal_mm: float | None = None) -> Lens:
     """The :class:`Lens` a row's ``view_json`` describes for a full frame of ``width`` × ``height``
-    px (LensError naming the missing or inconsistent key)."""
+    px (LensError naming the missing, inconsistent or implausible key: module doc)."""
+    _check_frame(width, height)
+    circle_range = tuple(f * max(width, height) for f in IMAGE_CIRCLE_PER_LONG_SIDE)
     if "colmap_model" in view:
-        model, params = str(view["colmap_model"]).upper(), tuple(float(p) for p in view.get("colmap_params", ()))
+        model = str(view["colmap_model"]).upper()
         try:
-            ViewCamera.from_model(model, width, height, params)
-        except ValueError as exc:
-            raise LensError(f"colmap_model {model}: {exc}") from None
-        max_angle = _number(view, "max_angle_deg")
-        circle = _number(view, "image_circle_radius_px")
+            params = tuple(float(p) for p in view.get("colmap_params", ()))
+            cam = ViewCamera.from_model(model, width, height, params).colmap
+        except (ValueError, TypeError) as exc:
+            raise LensError(f"colmap_model {model}: {exc}", "colmap_params") from None
+        if not all(math.isfinite(p) for p in params):
+            raise LensError(f"colmap_params {list(params)} must be finite numbers", "colmap_params")
+        focal_idx, pp_idx = list(cam.focal_length_idxs()), list(cam.principal_point_idxs())
+        for i in focal_idx:
+            _check_focal(params[i], "colmap_params (focal length)", width, height)
+        _check_principal_point(params[pp_idx[0]], params[pp_idx[1]], "colmap_params (principal point)", width, height)
+        extra = [p for i, p in enumerate(params) if i not in focal_idx + pp_idx]
+        if any(abs(p) > COLMAP_EXTRA_PARAM_MAX for p in extra):
+            raise LensError(f"colmap_params distortion terms {extra} exceed {COLMAP_EXTRA_PARAM_MAX:g} in magnitude",
+                            "colmap_params")
+        max_angle = _number(view, "max_angle_deg", 0.0, 180.0, "°")
+        circle = _number(view, "image_circle_radius_px", *circle_range, " px")
         return Lens(model, params, width, height, max_angle, _falloff(view, circle, width, height))
     projection = view.get("projection")
     if projection not in PROJECTIONS:
         raise LensError(f"no usable lens projection (got {projection!r}; session.toml [lens] projection must be "
-                        f"one of {', '.join(PROJECTIONS)}, or colmap_model with colmap_params)")
+                        f"one of {', '.join(PROJECTIONS)}, or colmap_model with colmap_params)", "projection")
     pp = view.get("principal_point_px", [width / 2, height / 2])
-    if not (isinstance(pp, (list, tuple)) and len(pp) == 2):
-        raise LensError(f"principal_point_px must be [cx, cy], got {pp!r}")
+    if not (isinstance(pp, (list, tuple)) and len(pp) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pp)):
+        raise LensError(f"principal_point_px must be [cx, cy], got {pp!r}", "principal_point_px")
     cx, cy = (float(v) for v in pp)
-    focal, _ = _focal_px(view, width, exif_focal_mm)
+    _check_principal_point(cx, cy, "principal_point_px", width, height)
+    focal, focal_key = _focal_px(view, width, exif_focal_mm)
     fov = _number(view, "fov_deg")
     if projection == "rectilinear":
         if focal is None:
             if fov is None:
                 raise LensError("no focal length: give focal_length_px, focal_length_mm with sensor_width_mm, "
-                                "or fov_deg (session.toml [lens])")
+                                "or fov_deg (session.toml [lens])", "focal_length_px")
             if not fov < 180:
-                raise LensError(f"rectilinear fov_deg must be below 180, got {fov:g}")
-            focal = (width / 2) / math.tan(math.radians(fov) / 2)
+                raise LensError(f"rectilinear fov_deg must be below 180, got {fov:g}", "fov_deg")
+            focal, focal_key = (width / 2) / math.tan(math.radians(fov) / 2), "fov_deg"
+        _check_focal(focal, focal_key, width, height)
         return Lens("PINHOLE", (focal, focal, cx, cy), width, height, None, _falloff(view, None, width, height))
-    circle = _number(view, "image_circle_radius_px")
+    circle = _number(view, "image_circle_radius_px", *circle_range, " px")
     if fov is not None and not fov <= 360:
-        raise LensError(f"fov_deg must be at most 360, got {fov:g}")
+        raise LensError(f"fov_deg must be at most 360, got {fov:g}", "fov_deg")
     half = None if fov is None else math.radians(fov) / 2
     if focal is None and half is None:
         raise LensError("no focal length or field of view: give focal_length_px, focal_length_mm with "
-                        "sensor_width_mm, or fov_deg (session.toml [lens])")
+                        "sensor_width_mm, or fov_deg (session.toml [lens])", "focal_length_px")
     if focal is None:
         circle = circle if circle is not None else min(width, height) / 2
-        focal = circle / _r_of_theta(projection, half)
+        focal, focal_key = circle / _r_of_theta(projection, half), "fov_deg"
     elif half is None:
         half = math.pi / 2 if circle is None else _theta_of_r(projection, circle / focal)
+    _check_focal(focal, focal_key, width, height)
     half = min(half, math.pi / 2)  # pycolmap's fisheye models: at most a hemisphere
     circle = focal * _r_of_theta(projection, half) if circle is None else circle
     k = (0.0, 0.0, 0.0, 0.0) if projection == "equidistant" else equisolid_coefficients(half)

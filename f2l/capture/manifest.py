@@ -1,5 +1,7 @@
 """The incremental ingest run: scan → (reuse or read) rows → sessions, roles, brackets →
-``WORK/captures.parquet`` (atomic). See :mod:`f2l.capture.ingest` for what each column means."""
+``WORK/captures.parquet`` (atomic). See :mod:`f2l.capture.ingest` for what each column means and
+how hostile input (bad lens values, paths out of the session, globs that match nothing, file
+names that are not UTF-8) is reported."""
 
 from __future__ import annotations
 
@@ -36,11 +38,15 @@ def _previous(table_path: Path) -> dict[str, dict]:
     return out
 
 
+def _new_row(rel: str, kind: str, stat: os.stat_result | None) -> dict:
+    return {"path": rel, "sha256": "", "size_bytes": int(stat.st_size) if stat else 0,
+            "mtime_ns": int(stat.st_mtime_ns) if stat else 0, "kind": kind, "session": "", "role": "other",
+            "role_source": "none", "bracket_id": None, "status": "ok", "message": "",
+            "view_json": "{}", "session_problem": "", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
+
+
 def _read_row(path: Path, rel: str, kind: str, stat: os.stat_result) -> dict:
-    row = {"path": rel, "sha256": "", "size_bytes": int(stat.st_size),
-           "mtime_ns": int(stat.st_mtime_ns), "kind": kind, "session": "", "role": "other",
-           "role_source": "none", "bracket_id": None, "status": "ok", "message": "",
-           "view_json": "{}", "session_problem": "", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
+    row = _new_row(rel, kind, stat)
     try:
         row.update(ing.read_file_meta(path, kind))
         row["sha256"] = file_sha256(path)
@@ -48,6 +54,33 @@ def _read_row(path: Path, rel: str, kind: str, stat: os.stat_result) -> dict:
         msg = str(exc)
         row.update(status="error", message=msg if msg.startswith(str(path)) else f"{path}: {msg}")
     return row
+
+
+def _unusable_row(path: Path, rel: str, stat: os.stat_result | None, why: str) -> dict:
+    """An ``error`` row for a file that is not opened: ``why`` names it (``rel`` already shown as
+    UTF-8)."""
+    row = _new_row(rel, ing.kind_of(path), stat)
+    row.update(status="error", message=why)
+    return row
+
+
+def _scan_item(root: Path, path: Path, previous: dict) -> tuple:
+    """(path, relative path as UTF-8, stat or None, reusable previous row or None, why the file is
+    not opened or None) of one scanned file."""
+    rel = path.relative_to(root).as_posix()
+    shown = ing.shown_path(rel)
+    why = None
+    try:
+        stat = path.stat()
+    except OSError as exc:  # a dangling symlink, a file removed while scanning
+        stat, why = None, f"{ing.shown_path(path)}: cannot be read ({exc.strerror or exc})"
+    if not ing.is_utf8(rel):
+        why = (f"{ing.shown_path(path)}: the file name is not valid UTF-8 ({ascii(os.fsencode(rel))}); "
+               f"the file is not read: rename it to ingest it")
+    if why is not None:
+        return path, shown, stat, None, why
+    old = previous.get(rel)
+    return path, rel, stat, old if _unchanged(old, stat) else None, None
 
 
 CONTENT_ROLES = ("face", "chart", "other")
@@ -61,11 +94,14 @@ def _unchanged(old: dict | None, stat: os.stat_result) -> bool:
 
 def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
                session_gap_min: float = 30.0, bracket_gap_s: float = 15.0,
-               detect_roles: bool = True, progress: bool = False, workers: int | None = None) -> ing.IngestSummary:
+               detect_roles: bool = True, progress: bool = False, workers: int | None = None,
+               allow_outside: bool = False) -> ing.IngestSummary:
     """Ingest the tree under ``root`` into ``work/captures.parquet``; returns counts.
 
     New or changed files are read by ``workers`` threads (default: the CPU count, at most 4): the
-    SHA-256 and a LibRaw decode, the costly parts, release the GIL; each holds one file at a time."""
+    SHA-256 and a LibRaw decode, the costly parts, release the GIL; each holds one file at a time.
+    ``allow_outside``: files a session.toml names (a flat field) may lie outside the session
+    folder (absolute paths, ``..``, symlinks out); by default they are refused."""
     from concurrent.futures import ThreadPoolExecutor
 
     from f2l.io.tables import rows_to_table, write_table_atomic
@@ -77,15 +113,19 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     table_path = work / TABLE_NAME
     previous = _previous(table_path)
     summary = ing.IngestSummary(root=str(root), table=str(table_path))
-    todo = []  # (path, relative path, stat, previous row or None when it must be read)
-    for path in ing.scan(root):
-        rel, stat = path.relative_to(root).as_posix(), path.stat()
-        old = previous.get(rel)
-        todo.append((path, rel, stat, old if _unchanged(old, stat) else None))
+    # (path, relative path, stat, previous row or None when it must be read, why it is not opened)
+    todo = [_scan_item(root, path, previous) for path in ing.scan(root)]
+    seen = Counter(item[1] for item in todo)
+    for k, item in enumerate(todo):  # an escaped name that equals a real one: keep the key unique
+        if item[4] is not None and seen[item[1]] > 1:
+            todo[k] = (item[0], f"{item[1]} [unreadable name {k}]", *item[2:])
 
     def one(item) -> dict:
-        path, rel, stat, old = item
-        if old is not None:
+        path, rel, stat, old, why = item
+        if why is not None:
+            row = _unusable_row(path, rel, stat, why)
+            row["_content_role"] = None
+        elif old is not None:
             row = dict(old)
             row["_content_role"] = old["role"] if old["role_source"] == "detected" and old["role"] in CONTENT_ROLES else None
         else:
@@ -104,10 +144,17 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
         rows = list(results)
     summary.reused = sum(item[3] is not None for item in todo)
     summary.read = len(todo) - summary.reused
-    _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary)
+    _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary, allow_outside)
     for r in rows:
         r.pop("_file_error")
         r.pop("_content_role")
+        r.pop("_view_problem", None)
+        for k, v in r.items():  # parquet strings are UTF-8: a message may quote a path that is not
+            if isinstance(v, str) and not ing.is_utf8(v):
+                r[k] = ing.shown_path(v)
+    summary.root, summary.table = ing.shown_path(summary.root), ing.shown_path(summary.table)
+    summary.session_problems = [ing.shown_path(x) for x in summary.session_problems]
+    summary.warnings = [ing.shown_path(x) for x in summary.warnings]
     rows.sort(key=lambda r: r["path"])
     write_table_atomic(rows_to_table(rows, "captures"), table_path, "captures")
     summary.files = len(rows)
@@ -116,21 +163,79 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     return summary
 
 
-def _with_files(view: dict, root: Path, session_dir: str) -> dict:
-    """A flat-field file named in the view, as a path relative to the capture root plus its
-    SHA-256 (so a changed file changes the merge's cache key); a missing file is left to the merge
-    to report."""
+def _session_files(config: dict, folder: Path, root: Path, allow_outside: bool) -> dict[str, dict | str]:
+    """Every file the session TOML names (``ing.session_files``) by key path → {"file": path
+    relative to the capture root (absolute where it lies outside and that is allowed), "sha256",
+    "allow_outside" when outside, "real": its resolved path}, or why it is refused or unusable.
+    Nothing is opened before it is known to be inside the session folder (or allowed) and a
+    regular file."""
+    out: dict[str, dict | str] = {}
+    for where, name in ing.session_files(config):
+        try:
+            path, outside = ing.resolve_session_file(folder, name, allow_outside=allow_outside)
+        except ing.OutsideError as exc:
+            out[where] = f"{exc}: refused (f2l ingest --allow-outside allows it)"
+            continue
+        why = ing.regular_file(path)
+        if why:
+            out[where] = f"flat-field file {name!r} {why} (at {ing.shown_path(path)})"
+            continue
+        try:
+            sha = file_sha256(path)
+        except OSError as exc:
+            out[where] = f"flat-field file {name!r} cannot be read ({exc.strerror or exc})"
+            continue
+        if outside:
+            info = {"file": os.path.abspath(path), "allow_outside": True}
+        else:
+            info = {"file": Path(os.path.relpath(os.path.normpath(path), root)).as_posix()}
+        out[where] = dict(info, sha256=sha, real=os.path.realpath(path))
+    return out
+
+
+def _with_files(view: dict, config: dict, shot: int | None, files: dict) -> tuple[dict, str]:
+    """(view, problem): a flat-field file named in the view as recorded by :func:`_session_files`
+    (a path relative to the capture root plus its SHA-256, so a changed file changes the merge's
+    cache key); problem "<key>: why" when that file was refused or cannot be used."""
     falloff = view.get("falloff")
     if not (isinstance(falloff, dict) and falloff.get("file")):
-        return view
-    rel = (Path(session_dir) / falloff["file"]).as_posix()
-    path = root / rel
-    view = dict(view, falloff=dict(falloff, file=rel, sha256=file_sha256(path) if path.is_file() else ""))
-    return view
+        return view, ""
+    where = ing.key_where(config, shot, "falloff") + "/file"
+    info = files.get(where)
+    if not isinstance(info, dict):
+        return view, f"{where}: {info or 'not resolved'}"
+    recorded = {k: v for k, v in info.items() if k != "real"}
+    return dict(view, falloff=dict(falloff, **recorded)), ""
+
+
+def _lens_problem(view: dict, row: dict, config: dict, shot: int | None) -> str:
+    """"<key>: why" when the view's lens cannot place a frame of the row's size (checked only
+    for a frame of known size whose view describes a lens), else ""."""
+    from f2l.capture.lens import LensError, lens_from_view
+
+    if row["kind"] not in ("raw", "image") or not ("projection" in view or "colmap_model" in view):
+        return ""
+    if not (row.get("width") and row.get("height")):
+        return ""
+    try:
+        lens_from_view(view, int(row["width"]), int(row["height"]), row.get("focal_length_mm"))
+    except LensError as exc:
+        return f"{ing.key_where(config, shot, exc.key)}: {exc} (the lens cannot place this view)"
+    return ""
+
+
+def _refuse(r: dict, root: Path, s: str, toml: str, summary: ing.IngestSummary, seen: dict) -> None:
+    """Make a frame whose view cannot be used an ``error`` row and say so once per session and key."""
+    problem = r["_view_problem"]
+    r["status"], r["message"], r["bracket_id"] = "error", f"{ing.shown_path(root / r['path'])}: {toml}: {problem}", None
+    key = f"session {s}: {toml}: {problem}"
+    if key not in seen:
+        seen[key] = len(summary.warnings)
+        summary.warnings.append(key)
 
 
 def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s: float,
-            detect_roles: bool, summary: ing.IngestSummary) -> None:
+            detect_roles: bool, summary: ing.IngestSummary, allow_outside: bool = False) -> None:
     """Sessions, TOML views, roles, brackets and statuses, recomputed on every run; content
     detection runs only for files without a cached detected role."""
     loose = [r for r in rows if ing._session_of(Path(r["path"])) is None]
@@ -145,15 +250,38 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
     for s in sessions:
         members = [r for r in rows if r["session"] == s]
         in_folder = (root / s).is_dir() and any(ing._session_of(Path(r["path"])) for r in members)
-        config, problem = ing.load_session_toml(root / s if in_folder else root)
+        is_loose = not any(ing._session_of(Path(r["path"])) for r in members)
+        folder = root / s if in_folder else root
+        config, problem = ing.load_session_toml(folder) if (in_folder or is_loose) else ({}, "")
+        toml = ing.shown_path(folder / ing.SESSION_TOML)
         if problem:
             summary.session_problems.append(f"session {s}: {problem} (session ingested without it)")
+        rels = {id(r): Path(r["path"]).relative_to(s).as_posix() if in_folder else r["path"] for r in members}
+        summary.warnings.extend(f"session {s}: {toml}: {w}"
+                                for w in ing.unmatched_globs(config, list(rels.values())))
+        files = _session_files(config, folder, root, allow_outside)
+        flat = {info["real"]: where for where, info in files.items() if isinstance(info, dict)}
+        flat_rows = {}  # id(row) -> key path of a row that is a named flat field
+        if flat:
+            for r in members:
+                where = flat.get(os.path.realpath(root / r["path"]))
+                if where is not None:
+                    flat_rows[id(r)] = where
+        unreadable_flat = {flat[os.path.realpath(root / r["path"])]: r["message"]
+                           for r in members if id(r) in flat_rows and r["_file_error"]}
         for r in members:
-            rel_in = Path(r["path"]).relative_to(s).as_posix() if in_folder else r["path"]
-            view = _with_files(ing.view_for(config, rel_in), root, s if in_folder else "")
+            rel_in = rels[id(r)]
+            shot = ing.matched_shot(config, rel_in)
+            view, view_problem = _with_files(ing.view_for(config, rel_in), config, shot, files)
+            where = ing.key_where(config, shot, "falloff") + "/file"
+            if not view_problem and where in unreadable_flat and "file" in view.get("falloff", {}):
+                view_problem = f"{where}: the flat-field file is unreadable ({unreadable_flat[where]})"
+            r["_view_problem"] = view_problem or _lens_problem(view, r, config, shot)
             r["view_json"] = json.dumps(view, sort_keys=True)
             r["session_problem"] = problem
             role, source = ing._folder_role(Path(r["path"])), "folder"
+            if id(r) in flat_rows:  # a flat field is calibration data, never a probe or a frame
+                role, source = "other", "toml"
             if role is None and "role" in view:
                 role, source = view["role"], "toml"
             if role is None and r["kind"] == "hdr":
@@ -164,7 +292,18 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
             if not r["_file_error"]:
                 r["status"] = "ok"
                 r["message"] = f"{problem} (session ingested without it)" if problem else ""
-        summary.brackets += ing.assign_brackets(members, bracket_gap_s)
+        seen: dict = {}
+        for r in members:  # declared sky frames whose view cannot be used: not bracketed
+            if r["_view_problem"] and r["role"] == "sky_bracket" and r["status"] == "ok":
+                _refuse(r, root, s, toml, summary, seen)
+        n_brackets = ing.assign_brackets(members, bracket_gap_s)
+        bad = {r["bracket_id"] for r in members if r["bracket_id"] and r["_view_problem"]}
+        for r in members:  # detected brackets of such frames are dissolved
+            if r["bracket_id"] in bad and r["_view_problem"]:
+                _refuse(r, root, s, toml, summary, seen)
+            elif r["bracket_id"] in bad:
+                r["bracket_id"] = None
+        summary.brackets += n_brackets - len(bad)
         summary.bracket_list.extend(ing.bracket_summary(members))
         for r in members:  # content detection for what is still undecided
             if r["role_source"] != "none" or r["status"] != "ok":
