@@ -67,6 +67,7 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
     """Estimate one face with one model; never raises for a bad face (status in the row)."""
     from f2l.io.exr import write_exr
     from f2l.io.preview import save_png, tonemap
+    from f2l.io.shards import declared_size_problem
     from f2l.lighting.grid import LatLongGrid
 
     torch_threads(cfg.threads)
@@ -74,6 +75,13 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
                      "grid_height": record.grid_height, "grid_width": record.grid_width}, model_name)
     t0 = time.perf_counter()
     model = None
+    # the record's own sizes before anything is allocated from them (the model's grid, transport):
+    # a record beyond them is refused as the record's fault, not the model's
+    problem = declared_size_problem(record.num_pixels, record.grid_height, record.grid_width,
+                                    min_pixels=1)
+    if problem is not None:
+        row.update(status="bad_record", message=f"{record.face_id}: {problem}")
+        return row
     try:
         grid = LatLongGrid(record.grid_height, record.grid_width)
         model = _get_model(model_name, grid)

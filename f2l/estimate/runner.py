@@ -59,7 +59,7 @@ def run_estimates(
     ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
     EstimatorConfig's (ignored with ``config``)."""
     from f2l.estimate import resume
-    from f2l.io.shards import BadRecord, count_records, iter_records
+    from f2l.io.shards import BadRecord, count_records, iter_records, shard_files
     from f2l.models.registry import model_class
 
     if executor not in ("local", "ray"):
@@ -101,16 +101,30 @@ def run_estimates(
             bar.write(f"[{row['status']}] {row['message']}")
         bar.update(1)
 
+    first_in: dict[str, str] = {}  # face_id -> the shard file it was first read from
+
     def tasks():
-        """(record or BadRecord, model) pairs still to do; done ones are counted and skipped."""
+        """(record or BadRecord, model) pairs still to do; done ones are counted and skipped. A
+        face_id read before (this or an earlier shard) becomes a BadRecord: only the first is
+        estimated, so no probe of it is overwritten."""
         for shard in shards:
-            for rec in iter_records(shard):
-                for name in models:
-                    if (rec.face_id, name) in done:
-                        counts["skipped"] += 1
-                        bar.update(1)
-                        continue
-                    yield rec, name
+            for path in shard_files(shard):
+                for rec in iter_records(path):
+                    if not isinstance(rec, BadRecord):
+                        if rec.face_id in first_in:
+                            rec = BadRecord(str(path), rec.face_id,
+                                            f"duplicate face_id (first in {first_in[rec.face_id]})")
+                        else:
+                            first_in[rec.face_id] = str(path)
+                    for name in models:
+                        if isinstance(rec, BadRecord) and rec.reason.startswith("duplicate face_id"):
+                            yield rec, name  # never done: the first one's row holds the key
+                            continue
+                        if (rec.face_id, name) in done:
+                            counts["skipped"] += 1
+                            bar.update(1)
+                            continue
+                        yield rec, name
 
     try:
         if executor == "ray":
@@ -144,7 +158,7 @@ def run_estimates(
                 for fut in pending:
                     handle(fut.result())
         parts.flush()
-        resume.finalise(out_dir, old_rows, parts.rows)
+        resume.finalise(out_dir, [], _merged_rows(old_rows, parts.rows))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t_start
@@ -164,10 +178,31 @@ def run_estimates(
     }
 
 
+DUPLICATE_STATUS = "duplicate_face_id"
+
+
 def _bad_row(bad, model: str) -> dict:
     row = _base_row({"face_id": bad.face_id or "", "source_path": bad.source}, model)
-    row.update(status="bad_record", message=f"{bad.source}: {bad.reason}")
+    status = DUPLICATE_STATUS if bad.reason.startswith("duplicate face_id") else "bad_record"
+    row.update(status=status, message=str(bad))
     return row
+
+
+def _merged_rows(old_rows: list[dict], new_rows: list[dict]) -> list[dict]:
+    """The finished table's rows: the old rows not redone (later ones win) and the new rows.
+
+    A duplicate face_id's row shares its (face_id, model) key with the first one's, so the key
+    alone cannot merge them: old duplicate rows are dropped (every run finds its duplicates
+    again), and only the new rows that are not duplicates redo an old row."""
+    redone = {(r["face_id"], r["model"]) for r in new_rows if r["status"] != DUPLICATE_STATUS}
+    keep: dict[tuple[str, str], dict] = {}
+    for r in old_rows:
+        key = (r["face_id"], r["model"])
+        if key not in redone and r["status"] != DUPLICATE_STATUS:
+            keep[key] = r
+    # the first one before its duplicates: finalise's sort is stable
+    firsts = [r for r in new_rows if r["status"] != DUPLICATE_STATUS]
+    return list(keep.values()) + firsts + [r for r in new_rows if r["status"] == DUPLICATE_STATUS]
 
 
 def _write_json_atomic(path: Path, obj) -> None:

@@ -13,11 +13,18 @@ reader turns an unreadable file or an invalid record into a :class:`BadRecord` i
 raising, so one bad file never stops a batch. The generic table machinery (rows <-> Arrow,
 atomic Parquet writers, :class:`ParquetAppender` for result tables) lives in ``f2l.io.tables``
 and is re-exported here.
+
+A record from outside is read with bounds, before anything is allocated from what it declares
+(:func:`declared_size_problem`): a lighting grid of at most :data:`MAX_GRID_TEXELS` texels
+(``$F2L_MAX_GRID_TEXELS``), at most :data:`MAX_RECORD_PIXELS` face pixels
+(``$F2L_MAX_RECORD_PIXELS``), a row group no larger (uncompressed, from the
+file's footer) than its declared sizes need, and a ``meta_json`` read by
+:func:`f2l.io.bounded.load_json` (depth, string length, size, finite numbers). A record beyond
+them becomes a :class:`BadRecord` naming the file, the record and the reason.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping
@@ -29,6 +36,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from f2l.io.bounded import MAX_TEXT_BYTES, InputError, load_json
 from f2l.io.schema import SchemaError, arrow_schema, json_dumps_strict, table_errors, validate_table
 from f2l.io.tables import (
     CommitOnSuccess,
@@ -59,10 +67,75 @@ __all__ = [
     "pack_visibility",
     "unpack_visibility",
     "SchemaError",
+    "MAX_GRID_TEXELS",
+    "MAX_RECORD_PIXELS",
+    "max_grid_texels",
+    "max_record_pixels",
+    "declared_size_problem",
 ]
 
 FACE_SCHEMA_NAME = "face_record"
 _NORMAL_TOLERANCE = 1e-3
+
+MAX_GRID_TEXELS = 1 << 20
+"""Most texels (grid_height * grid_width) a record's lighting grid may have: 1,048,576, e.g.
+1024 x 1024. f2l writes 64 x 128 (8,192) or 32 x 128; research grids are a few hundred a side.
+Raise with ``$F2L_MAX_GRID_TEXELS``."""
+MAX_RECORD_PIXELS = 1 << 20
+"""Most face pixels one record may have: 1,048,576. fit-faces writes about 10k (a 104-px crop),
+100k at most. Raise with ``$F2L_MAX_RECORD_PIXELS``."""
+_ROW_GROUP_SLACK_BYTES = 4 * MAX_TEXT_BYTES  # strings (meta_json up to 16 MiB, paths) and framing
+
+
+def _env_limit(name: str, default: int) -> int:
+    value = os.environ.get(name)
+    try:
+        return max(1, int(float(value))) if value else default
+    except (ValueError, OverflowError):
+        return default
+
+
+def max_grid_texels() -> int:
+    """The grid limit: ``$F2L_MAX_GRID_TEXELS`` when set, else :data:`MAX_GRID_TEXELS`."""
+    return _env_limit("F2L_MAX_GRID_TEXELS", MAX_GRID_TEXELS)
+
+
+def max_record_pixels() -> int:
+    """The pixel limit: ``$F2L_MAX_RECORD_PIXELS`` when set, else :data:`MAX_RECORD_PIXELS`."""
+    return _env_limit("F2L_MAX_RECORD_PIXELS", MAX_RECORD_PIXELS)
+
+
+def declared_size_problem(num_pixels: Any, grid_height: Any, grid_width: Any, *,
+                          min_pixels: int = 0) -> str | None:
+    """Why a record's declared sizes are refused (None when they are accepted): fewer than
+    ``min_pixels`` face pixels (a shard may store an empty record; ``f2l estimate`` asks for 1),
+    more than :func:`max_record_pixels`, an empty grid or one of more than :func:`max_grid_texels`
+    texels. Checked before anything is allocated from them."""
+    for name, value in (("num_pixels", num_pixels), ("grid_height", grid_height),
+                        ("grid_width", grid_width)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            return f"{name} is {value!r}, not an integer"
+    n, h, w = int(num_pixels), int(grid_height), int(grid_width)
+    if n < 0:
+        return f"num_pixels is negative ({n})"
+    if n < min_pixels:
+        return ("the record has no face pixels (num_pixels = 0)" if n == 0 else
+                f"the record has {n} face pixels, fewer than the {min_pixels} needed")
+    if n > max_record_pixels():
+        return (f"the record declares {n} face pixels, more than the {max_record_pixels()} "
+                f"accepted (F2L_MAX_RECORD_PIXELS)")
+    if h < 1 or w < 1:
+        return f"the lighting grid {h}x{w} is empty"
+    if h * w > max_grid_texels():
+        return (f"the record declares a {h}x{w} lighting grid = {h * w} texels, more than the "
+                f"{max_grid_texels()} accepted (F2L_MAX_GRID_TEXELS)")
+    return None
+
+
+def _declared_bytes(num_pixels: int, grid_height: int, grid_width: int) -> int:
+    """Bytes the bulk columns of a record of these (accepted) sizes hold, uncompressed."""
+    n = int(num_pixels)
+    return n * (2 * 4 + 3 * 3 * 4 + 1) + n * (-(-int(grid_height) * int(grid_width) // 8))
 
 
 def _face_id_pattern() -> re.Pattern:
@@ -179,8 +252,11 @@ class FaceRecord:
     # -- validation ----------------------------------------------------------------------
     def check_arrays(self) -> None:
         """Shapes, dtypes, finiteness, unit normals, observed >= 0, pixels inside the photo."""
-        errors: list[str] = []
         n = self.num_pixels
+        problem = declared_size_problem(n, self.grid_height, self.grid_width)
+        if problem is not None:
+            raise SchemaError(f"face {self.face_id!r}: {problem}", [problem])
+        errors: list[str] = []
         nbytes = -(-self.num_texels // 8)
         specs = (
             ("pixel_rc", np.int32, (n, 2)),
@@ -267,7 +343,18 @@ class FaceRecord:
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> FaceRecord:
-        """Inverse of :meth:`to_row` (accepts lists, numpy arrays or bytes for the arrays)."""
+        """Inverse of :meth:`to_row` (accepts lists, numpy arrays or bytes for the arrays).
+
+        The declared sizes are checked first (:func:`declared_size_problem`) and ``meta_json`` is
+        read with bounds (:func:`f2l.io.bounded.load_json`): :class:`SchemaError` naming the face."""
+        who = f"face {row.get('face_id')!r}"
+        problem = declared_size_problem(row["num_pixels"], row["grid_height"], row["grid_width"])
+        if problem is not None:
+            raise SchemaError(f"{who}: {problem}", [problem])
+        try:
+            meta = load_json(row["meta_json"], f"{who}: meta_json")
+        except (InputError, TypeError) as exc:
+            raise SchemaError(str(exc), [str(exc)]) from None
         n = int(row["num_pixels"])
         num_texels = int(row["grid_height"]) * int(row["grid_width"])
         vis = row["visibility_bits"]
@@ -294,7 +381,7 @@ class FaceRecord:
             visibility_method=row["visibility_method"],
             gt_probe_path=row["gt_probe_path"],
             photo_path=row["photo_path"],
-            meta=json.loads(row["meta_json"]),
+            meta=meta,
             status=row["status"],
             message=row["message"],
         )
@@ -420,8 +507,10 @@ def iter_records(shards: str | os.PathLike | Iterable[str | os.PathLike],
                  validate: bool = True) -> Iterator[FaceRecord | BadRecord]:
     """Stream records one row group at a time, files in sorted order.
 
-    An unreadable file, an unreadable row group, or a row failing validation yields a
-    :class:`BadRecord` and reading continues with the next row group or file.
+    An unreadable file, an unreadable row group, a record whose declared sizes are refused
+    (:func:`declared_size_problem`, checked before its arrays are read), a row group larger than
+    its records' declared sizes need, an unbounded ``meta_json`` or a row failing validation
+    yields a :class:`BadRecord` and reading continues with the next row group or file.
     """
     schema = _schema(FACE_SCHEMA_NAME)
     for path in shard_files(shards):
@@ -433,6 +522,14 @@ def iter_records(shards: str | os.PathLike | Iterable[str | os.PathLike],
             continue
         with pf:
             for rg in range(pf.num_row_groups):
+                refused, group_problem = _precheck_row_group(pf, rg)
+                if group_problem is not None:  # nothing of it is read; each row's own reason first
+                    if not refused:
+                        yield BadRecord(source, None, f"row group {rg}: {group_problem}")
+                    for i, (face_id, problem) in enumerate(refused):
+                        yield BadRecord(source, face_id,
+                                        f"row group {rg} row {i}: {problem or group_problem}")
+                    continue
                 try:
                     table = pf.read_row_group(rg)
                 except Exception as exc:  # noqa: BLE001
@@ -440,14 +537,56 @@ def iter_records(shards: str | os.PathLike | Iterable[str | os.PathLike],
                                                   f"{type(exc).__name__}: {exc}")
                     continue
                 for i in range(table.num_rows):
+                    where = f"row group {rg} row {i}"
+                    if refused[i][1] is not None:
+                        yield BadRecord(source, refused[i][0], f"{where}: {refused[i][1]}")
+                        continue
                     one = table.slice(i, 1) if table.num_rows > 1 else table
-                    yield _record_from_table(one, source, f"row group {rg} row {i}", schema,
-                                             validate)
+                    yield _record_from_table(one, source, where, schema, validate)
+
+
+_SIZE_COLUMNS = ("face_id", "num_pixels", "grid_height", "grid_width")
+
+
+def _precheck_row_group(pf: pq.ParquetFile, rg: int) -> tuple[list[tuple[str | None, str | None]], str | None]:
+    """Before a row group's arrays are read: per row ``(face_id, problem or None)`` from its
+    declared sizes, and a problem of the whole group (its size columns unreadable, or more bytes
+    uncompressed, per the file's footer, than the accepted rows' declared sizes need)."""
+    names = set(pf.schema_arrow.names)
+    missing = [c for c in _SIZE_COLUMNS if c not in names]
+    if missing:
+        return [], f"missing column(s) {', '.join(missing)}"
+    try:
+        rows = pf.read_row_group(rg, columns=list(_SIZE_COLUMNS)).to_pylist()
+        group_bytes = int(pf.metadata.row_group(rg).total_byte_size)
+    except Exception as exc:  # noqa: BLE001
+        return [], f"unreadable: {type(exc).__name__}: {exc}"
+    refused: list[tuple[str | None, str | None]] = []
+    need = _ROW_GROUP_SLACK_BYTES
+    for r in rows:
+        face_id = r["face_id"] if isinstance(r["face_id"], str) else None
+        problem = declared_size_problem(r["num_pixels"], r["grid_height"], r["grid_width"])
+        refused.append((face_id, problem))
+        if problem is None:
+            need += 2 * _declared_bytes(r["num_pixels"], r["grid_height"], r["grid_width"])
+    if group_bytes > need:
+        return refused, (f"{group_bytes} bytes uncompressed, more than its records' declared sizes "
+                         f"(num_pixels, grid_height x grid_width) need ({need}); not read")
+    return refused, None
 
 
 def _record_from_table(table: pa.Table, source: str, where: str, schema: dict,
                        validate: bool) -> FaceRecord | BadRecord:
     face_id = _row_face_id(table, 0)
+    if "meta_json" in table.column_names:  # bounded before anything parses it (schema, from_row)
+        try:
+            text = table.column("meta_json")[0].as_py()
+            if isinstance(text, str):
+                load_json(text, f"{where}: meta_json")
+        except InputError as exc:
+            return BadRecord(source, face_id, str(exc))
+        except Exception:  # noqa: BLE001 - a malformed column is reported by the checks below
+            pass
     if validate:
         errors = table_errors(table, schema, source=where)
         if errors:
