@@ -13,11 +13,16 @@ Face ids are ``<photo stem>-<first 10 hex of the file's SHA-256>-f<index>`` (fil
 so the same bytes give the same ids wherever the file lives. One bad photo never stops the
 batch: it gets status ``error`` with a message naming it; ``no_face`` and ``rejected`` photos
 are counted. Every file is written atomically.
+
+A photo whose file name is not valid UTF-8 (bytes a Linux file system allows, which Parquet
+strings cannot hold) is fitted like any other, recorded under its name with each undecodable byte
+escaped as ``\\xNN`` (:func:`printable_path`); its status message says so.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import time
 from pathlib import Path
@@ -44,6 +49,26 @@ def expand_photos(paths) -> list[Path]:
         else:
             out.append(p)
     return out
+
+
+def printable(text: str) -> str:
+    """``text`` as valid UTF-8: the undecodable bytes of a file name (``surrogateescape``) as
+    ``\\xNN``, any other lone surrogate as ``\\uNNNN``."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def printable_path(path) -> str:
+    """The path as tables and messages can hold it: ``str(path)``, or where its name is not valid
+    UTF-8, that name with each undecodable byte escaped as ``\\xNN``."""
+    return printable(os.fspath(path))
 
 
 def face_id(path: Path, sha256: str, index: int) -> str:
@@ -90,7 +115,7 @@ def _photo_overlay(out: Path, path: Path, sha: str, photo, fits, records) -> str
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     kept = sum(k for _, _, k in faces)
     write_photo_overlay(out / rel, display, scale, faces,
-                        title=f"{path.name}: {len(fits)} face(s) detected, {kept} kept, {len(fits) - kept} refused")
+                        title=f"{printable(path.name)}: {len(fits)} face(s) detected, {kept} kept, {len(fits) - kept} refused")
     return rel
 
 
@@ -138,7 +163,8 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
             ParquetAppender(out / STATUS_TABLE, "photo_status", rows_per_group=256) as status:
         for path in iterator:
             t0 = time.perf_counter()
-            row = {"source_path": str(path), "sha256": "", "num_detected": 0, "face_ids": [],
+            shown = printable_path(path)  # what the tables and messages hold
+            row = {"source_path": shown, "sha256": "", "num_detected": 0, "face_ids": [],
                    "rejected_json": "[]", "overlay_path": None}
             try:
                 if not path.is_file():
@@ -151,12 +177,12 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                 for fit in fits:
                     if not isinstance(fit, FaceFit):
                         rejected.append({"face_index": fit.face_index, "reason": fit.reason,
-                                         "message": f"{path}: {fit.message}",
+                                         "message": f"{shown}: {printable(fit.message)}",
                                          "box": None if fit.box is None else [round(v, 2) for v in fit.box]})
                         continue
                     fid = face_id(path, sha, fit.face_index)
                     crop_rel = write_side_photo(out, fid, fit.crop_display)
-                    record = face_record(fit, photo, fid, options, source_path=str(path),
+                    record = face_record(fit, photo, fid, options, source_path=shown,
                                          photo_rel=crop_rel,
                                          gt_probe_rel=_gt_probe(out, fid, path, gt_dir, options.grid))
                     if overlays:
@@ -171,7 +197,7 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                     per_face_s.append(seconds)
                 row["rejected_json"] = json.dumps(rejected)
                 if row["face_ids"]:
-                    row["status"], row["message"] = "ok", f"{path}: {len(row['face_ids'])} face(s)"
+                    row["status"], row["message"] = "ok", f"{shown}: {len(row['face_ids'])} face(s)"
                     if rejected:
                         row["message"] += f", {len(rejected)} refused"
                     if any(r.meta.get("greyscale") for r, _ in records):
@@ -180,12 +206,15 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
                     row["status"] = "rejected"
                     row["message"] = "; ".join(r["message"] for r in rejected)
                 else:
-                    row["status"], row["message"] = "no_face", f"{path}: no face detected"
+                    row["status"], row["message"] = "no_face", f"{shown}: no face detected"
             except PhotoError as exc:
-                row["status"], row["message"] = "error", str(exc)
+                row["status"], row["message"] = "error", printable(str(exc))
             except Exception as exc:  # noqa: BLE001 - one bad photo must not stop the batch
                 row["status"] = "error"
-                row["message"] = f"{path}: {type(exc).__name__}: {exc}"
+                row["message"] = printable(f"{shown}: {type(exc).__name__}: {exc}")
+            if shown != str(path):
+                row["message"] += ("; the file name is not valid UTF-8: recorded with its "
+                                   "undecodable bytes as \\xNN")
             row["seconds"] = round(time.perf_counter() - t0, 4)
             status.append(row)
             counts[row["status"]] += 1

@@ -7,7 +7,9 @@ crops, per-face overlays and the whole-photo overlay. The key is the photo's fil
 SHA-256, the pinned models' SHA-256 and the parameters, so a rerun, or the same bytes under the
 same name in another folder, reuses the entry and fits nothing. A photo that cannot be read or
 holds no usable face gets its status and reason (cached too: an unchanged bad photo is not
-retried) and never stops the others.
+retried) and never stops the others. A photo whose file name is not valid UTF-8 is refused
+with a status naming it (its undecodable bytes as ``\\xNN``): the cache and the records keep
+names as UTF-8 text; renamed, it is fitted.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from f2l.face.run import PHOTO_EXTENSIONS, RAW_EXTENSIONS, expand_photos
+from f2l.face.run import PHOTO_EXTENSIONS, RAW_EXTENSIONS, expand_photos, printable, printable_path
 
 FACES_DIR = "faces"
 
@@ -56,11 +58,23 @@ def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = No
 
         iterator = tqdm(files, unit="photo", desc="fit faces")
     for path in iterator:
+        shown = printable_path(path)
+        if shown != str(path):
+            row = {"source_path": shown, "status": "error", "face_ids": [], "rejected": [],
+                   "message": f"{shown}: the file name is not valid UTF-8 (its undecodable bytes "
+                              f"shown as \\xNN); rename the file to estimate it"}
+            counts["error"] = counts.get("error", 0) + 1
+            rows.append(row)
+            if progress:
+                from tqdm import tqdm
+
+                tqdm.write(f"error: {row['message']}")
+            continue
         try:
             sha = file_sha256(path)
         except OSError as exc:
-            row = {"source_path": str(path), "status": "error", "face_ids": [], "rejected": [],
-                   "message": f"{path}: cannot read: {exc.strerror or exc}"}
+            row = {"source_path": shown, "status": "error", "face_ids": [], "rejected": [],
+                   "message": printable(f"{path}: cannot read: {exc.strerror or exc}")}
         else:
             if fitter is None:
                 fitter = FaceFitter(cache, path.parent, fit, spec.params("transport"),
@@ -70,7 +84,7 @@ def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = No
             row = {"source_path": str(path), "status": result["status"], "face_ids": result["face_ids"],
                    "rejected": result["rejected"], "entry": result["entry"],
                    "message": result["message"].replace(path.name, str(path), 1)}
-            if result["face_ids"]:
+            if result["face_ids"] and Path(result["entry"]) not in shards:  # same bytes, same name: one entry
                 shards.append(Path(result["entry"]))
         counts[row["status"]] = counts.get(row["status"], 0) + 1
         rows.append(row)
