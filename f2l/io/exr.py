@@ -5,10 +5,20 @@ of magnitude) channels R, G, B, ZIP-compressed, scanline, atomically (temp file 
 directory, then ``os.replace``). Values are linear scene-referred radiance, so NaN/inf and
 negatives below -1e-6 are rejected on write. Optional string metadata is stored as extra header
 attributes. Any unreadable, corrupt, truncated or missing file raises ``ExrError("path: reason")``.
+
+Hostile files: the header's data window is checked before any pixel is decoded; an image of more
+than :data:`MAX_DECODE_PIXELS` pixels is refused (naming the file and its size) instead of
+allocating what the header claims (a 1-MB file may claim 100000 x 50000 float pixels, 60 GB).
+Raise the limit with the environment variable ``F2L_MAX_DECODE_PIXELS`` or the ``max_pixels``
+argument; :func:`f2l.io.probe_io.read_hdr_image` reads larger images in bands, downsampled to the
+size its caller needs. What OpenEXR's C++ library prints itself (e.g. "Warning: Exception raised
+reading pixel data for part 0 - ...", on stdout) goes to the debug log (``f2l --debug-log``),
+never to stdout or stderr.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -18,8 +28,45 @@ import OpenEXR
 
 from f2l.io.atomic import atomic_path
 
-__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata",
-           "REC709_CHROMATICITIES", "NEGATIVE_TOLERANCE"]
+__all__ = ["ExrError", "write_exr", "read_exr", "read_exr_with_metadata", "exr_size",
+           "REC709_CHROMATICITIES", "NEGATIVE_TOLERANCE", "MAX_DECODE_PIXELS", "DECODE_PIXELS_ENV",
+           "decode_pixel_limit", "quiet_native", "too_large_message"]
+
+_log = logging.getLogger(__name__)
+
+MAX_DECODE_PIXELS = 2**25
+"""Most pixels (width x height; 33,554,432, e.g. an 8192 x 4096 lat-long HDRI or a 6000 x 4000
+photo) an image reader decodes at once: about 400 MB as float32 RGB, twice that while OpenEXR's
+channels are stacked. Larger images are refused by :func:`read_exr`, and read in bands and
+downsampled by :func:`f2l.io.probe_io.read_hdr_image` when its caller gives a target size. Raise it
+with the environment variable ``F2L_MAX_DECODE_PIXELS`` (an integer) or a ``max_pixels`` argument."""
+
+DECODE_PIXELS_ENV = "F2L_MAX_DECODE_PIXELS"
+"""Environment variable that overrides :data:`MAX_DECODE_PIXELS`."""
+
+
+def decode_pixel_limit(max_pixels: int | None = None) -> int:
+    """The decode limit in pixels: ``max_pixels`` when given, else ``$F2L_MAX_DECODE_PIXELS``,
+    else :data:`MAX_DECODE_PIXELS`. ValueError for a value that is not a positive integer."""
+    if max_pixels is None:
+        raw = os.environ.get(DECODE_PIXELS_ENV, "").strip()
+        if not raw:
+            return MAX_DECODE_PIXELS
+        try:
+            max_pixels = int(raw.replace("_", ""))
+        except ValueError:
+            raise ValueError(f"{DECODE_PIXELS_ENV}={raw!r}: not an integer number of pixels") from None
+    if isinstance(max_pixels, bool) or int(max_pixels) != max_pixels or max_pixels < 1:
+        raise ValueError(f"the decode limit must be a positive number of pixels, got {max_pixels!r}")
+    return int(max_pixels)
+
+
+def quiet_native(path):
+    """Context manager: what native code (OpenEXR, OpenImageIO) prints to fd 1 or 2 while it reads
+    ``path`` goes to this module's debug log (``f2l --debug-log``), never to stdout/stderr."""
+    from f2l.io.native_stderr import native_output_to_log
+
+    return native_output_to_log(_log, str(path))
 
 NEGATIVE_TOLERANCE = 1e-6
 """Values in [-1e-6, 0) are accepted (rounding noise); anything more negative is an error."""
@@ -96,19 +143,53 @@ def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict[str, st
         OpenEXR.File(header, channels).write(tmp)
 
 
-def read_exr_with_metadata(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, str]]:
-    """Read an EXR: returns (image (H, W, 3) float32, string header attributes).
-
-    Reads channels R, G, B (any pixel type, converted to float32) of the first part, or a single
-    luminance channel Y replicated to RGB. Raises ExrError(f"{path}: reason") on any failure.
-    """
-    path = Path(path)
+def _check_file(path: Path) -> None:
     if not path.exists():
         raise ExrError(f"{path}: file not found")
     if not path.is_file():
         raise ExrError(f"{path}: not a regular file")
+
+
+def exr_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(height, width) of an EXR's data window (first part), from its header alone; ExrError."""
+    path = Path(path)
+    _check_file(path)
     try:
-        exr = OpenEXR.File(str(path), separate_channels=True)
+        with quiet_native(path):
+            exr = OpenEXR.File(str(path), header_only=True)
+            header = exr.header(0)
+        lo, hi = header["dataWindow"]
+        height, width = int(hi[1]) - int(lo[1]) + 1, int(hi[0]) - int(lo[0]) + 1
+    except Exception as exc:  # OpenEXR raises RuntimeError/ValueError/... for bad files
+        raise ExrError(f"{path}: unreadable EXR header ({exc})") from exc
+    if height < 1 or width < 1:
+        raise ExrError(f"{path}: empty or inverted data window ({width}x{height})")
+    return height, width
+
+
+def too_large_message(path, height: int, width: int, limit: int) -> str:
+    """The refusal of an image over the decode limit: file, size, limit and how to raise it."""
+    return (f"{path}: {width}x{height} image ({width * height:,} pixels) exceeds the decode limit of "
+            f"{limit:,} pixels (set {DECODE_PIXELS_ENV} to raise it)")
+
+
+def read_exr_with_metadata(path: str | os.PathLike, *, max_pixels: int | None = None
+                           ) -> tuple[np.ndarray, dict[str, str]]:
+    """Read an EXR: returns (image (H, W, 3) float32, string header attributes).
+
+    Reads channels R, G, B (any pixel type, converted to float32) of the first part, or a single
+    luminance channel Y replicated to RGB. Raises ExrError(f"{path}: reason") on any failure, and
+    for an image of more than ``max_pixels`` pixels (default :func:`decode_pixel_limit`), checked
+    on the header before any pixel is decoded.
+    """
+    path = Path(path)
+    limit = decode_pixel_limit(max_pixels)
+    height, width = exr_size(path)
+    if height * width > limit:
+        raise ExrError(too_large_message(path, height, width, limit))
+    try:
+        with quiet_native(path):
+            exr = OpenEXR.File(str(path), separate_channels=True)
         parts = exr.parts
         if not parts:  # OpenEXR drops a part whose pixel data failed to decode
             raise ExrError(f"{path}: corrupt or truncated pixel data")
@@ -140,6 +221,6 @@ def read_exr_with_metadata(path: str | os.PathLike) -> tuple[np.ndarray, dict[st
     return image, metadata
 
 
-def read_exr(path: str | os.PathLike) -> np.ndarray:
+def read_exr(path: str | os.PathLike, *, max_pixels: int | None = None) -> np.ndarray:
     """Read an EXR as (H, W, 3) float32 (see ``read_exr_with_metadata``)."""
-    return read_exr_with_metadata(path)[0]
+    return read_exr_with_metadata(path, max_pixels=max_pixels)[0]

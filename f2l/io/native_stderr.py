@@ -1,45 +1,149 @@
-"""Catch what native code writes to file descriptor 2 (C++ libraries print there directly,
-bypassing ``sys.stderr`` and Python's logging) while a block runs, and hand it over line by line.
+"""Catch what native code writes to file descriptors 1 and 2 (C++ libraries print there directly,
+bypassing ``sys.stdout``/``sys.stderr`` and Python's logging) while a block runs, and hand it over
+line by line.
 
-Used to keep third-party start-up notices (LiteRT's "INFO: Created TensorFlow Lite XNNPACK
-delegate", Warp's "no CUDA driver") out of the terminal: the caller routes each line to the debug
-log (``f2l --debug-log``) or passes it on.
+Used to keep third-party notices out of the terminal and out of ``--json`` output: LiteRT's
+"INFO: Created TensorFlow Lite XNNPACK delegate", Warp's "no CUDA driver", OpenEXR's "Warning:
+Exception raised reading pixel data for part 0 - ..." (printed to stdout, without a file name).
+The caller routes each line to the debug log (``f2l --debug-log``) or passes it on.
+
+The redirection is process-wide (a file descriptor is), so it is shared and reference-counted:
+blocks that overlap, in one thread (nested) or several (a thread pool decoding EXRs), redirect a
+descriptor once and restore it when the last of them ends; no block can leave fd 1 or 2 pointing
+at another block's temporary file. Each block hands over the complete lines written while it
+ran; with overlapping blocks a line may be handed to either of them.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import logging
 import os
 import sys
 import tempfile
+import threading
 from typing import Callable, Iterator
 
-__all__ = ["native_stderr_lines"]
+__all__ = ["native_stderr_lines", "native_output_lines", "native_output_to_log"]
+
+_LOCK = threading.Lock()
+
+
+class _Redirect:
+    """One descriptor's shared redirection: the saved original, the sink, the read position."""
+
+    def __init__(self, fd: int):
+        self.fd = fd
+        self.depth = 0
+        self.saved: int | None = None
+        self.sink = None
+        self.read_at = 0
+        self.partial = b""
+
+    def enter(self) -> bool:
+        if self.depth == 0:
+            _flush(self.fd)
+            try:
+                saved = os.dup(self.fd)
+            except OSError:
+                return False
+            sink = tempfile.TemporaryFile()
+            os.dup2(sink.fileno(), self.fd)
+            self.saved, self.sink, self.read_at, self.partial = saved, sink, 0, b""
+        self.depth += 1
+        return True
+
+    def take(self, final: bool) -> list[str]:
+        """Complete lines written since the last take (all of them when ``final``)."""
+        size = os.fstat(self.sink.fileno()).st_size
+        data = self.partial + (os.pread(self.sink.fileno(), size - self.read_at, self.read_at)
+                               if size > self.read_at else b"")
+        self.read_at = size
+        if final:
+            self.partial = b""
+        else:
+            cut = data.rfind(b"\n") + 1
+            data, self.partial = data[:cut], data[cut:]
+        return data.decode("utf-8", "replace").splitlines()
+
+    def leave(self) -> list[str]:
+        self.depth -= 1
+        if self.depth > 0:
+            _flush_native()
+            return self.take(final=False)
+        _flush(self.fd)
+        try:
+            os.dup2(self.saved, self.fd)
+        finally:
+            os.close(self.saved)
+            lines = self.take(final=True)
+            self.sink.close()
+            self.saved = self.sink = None
+        return lines
+
+
+_REDIRECTS = {1: _Redirect(1), 2: _Redirect(2)}
+
+
+def _flush_native() -> None:
+    """Flush C stdio buffers (a C++ library's ``std::cout``/``printf`` output to a file or pipe is
+    buffered: unflushed, it would reach the real descriptor after the block ends)."""
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library handle on this platform
+        pass
+
+
+def _flush(fd: int) -> None:
+    stream = sys.stdout if fd == 1 else sys.stderr
+    try:
+        if stream is not None:
+            stream.flush()
+    except (OSError, ValueError):
+        pass
+    _flush_native()
 
 
 @contextlib.contextmanager
-def native_stderr_lines(handle: Callable[[str, bool], None]) -> Iterator[None]:
-    """Run the block with fd 2 redirected to a temporary file; afterwards call
-    ``handle(line, failed)`` for each non-empty line written meanwhile (``failed``: the block
-    raised). Without a usable fd 2 (embedded interpreters) the block runs unchanged."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield
-        return
+def native_output_lines(handle: Callable[[str, bool], None], fds: tuple[int, ...] = (1, 2)) -> Iterator[None]:
+    """Run the block with the descriptors ``fds`` (1: stdout, 2: stderr) redirected to temporary
+    files; afterwards call ``handle(line, failed)`` for each non-empty line written meanwhile
+    (``failed``: the block raised). A descriptor that cannot be duplicated (embedded
+    interpreters) is left as it is."""
+    entered: list[_Redirect] = []
+    with _LOCK:
+        for fd in fds:
+            red = _REDIRECTS.get(fd) or _REDIRECTS.setdefault(fd, _Redirect(fd))
+            if red.enter():
+                entered.append(red)
     failed = False
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        except BaseException:
-            failed = True
-            raise
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            for line in sink.read().decode("utf-8", "replace").splitlines():
-                if line.strip():
-                    handle(line, failed)
+    try:
+        yield
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        lines: list[str] = []
+        with _LOCK:
+            for red in entered:
+                lines += red.leave()
+        for line in lines:
+            if line.strip():
+                handle(line, failed)
+
+
+def native_stderr_lines(handle: Callable[[str, bool], None]) -> Iterator[None]:
+    """:func:`native_output_lines` for fd 2 only (stderr)."""
+    return native_output_lines(handle, fds=(2,))
+
+
+def native_output_to_log(logger: logging.Logger, context: str = ""):
+    """:func:`native_output_lines` for fd 1 and 2, each line logged at DEBUG level on ``logger``
+    (``f2l --debug-log``), prefixed with ``context`` (e.g. the file being read)."""
+    prefix = f"{context}: " if context else ""
+
+    def handle(line: str, failed: bool) -> None:
+        logger.debug("%snative output%s: %s", prefix, " (failed)" if failed else "", line)
+
+    return native_output_lines(handle)
