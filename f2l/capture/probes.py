@@ -57,6 +57,22 @@ class ProbesSummary:
         return out
 
 
+POSE_KEYS = ("yaw_deg", "pitch_deg", "roll_deg")
+LENS_KEYS = ("projection", "colmap_model")
+
+
+def pose_problem(view: dict) -> str | None:
+    """Why a row's ``view_json`` orientation cannot place a view (an angle that is not a finite
+    number), or None."""
+    for key in POSE_KEYS:
+        value = view.get(key, 0.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"{key} = {value!r} is not a number"
+        if not math.isfinite(float(value)):
+            return f"{key} = {value} is not a finite angle"
+    return None
+
+
 def camera_for(view: dict, width: int, height: int, *, frame: tuple | None = None,
                exif_focal_mm: float | None = None):
     """The :class:`~f2l.capture.cameras.ViewCamera` a row's ``view_json`` describes for a view of
@@ -67,7 +83,10 @@ def camera_for(view: dict, width: int, height: int, *, frame: tuple | None = Non
     from f2l.capture.lens import lens_from_view
 
     fw, fh, k, cx, cy = frame if frame is not None else (width, height, 1, 0, 0)
-    pose = {key: float(view.get(key, 0.0)) for key in ("yaw_deg", "pitch_deg", "roll_deg")}
+    problem = pose_problem(view)
+    if problem:
+        raise ValueError(problem)
+    pose = {key: float(view.get(key, 0.0)) for key in POSE_KEYS}
     return lens_from_view(view, int(fw), int(fh), exif_focal_mm).view_camera(width, height, int(k), int(cx), int(cy),
                                                                              **pose)
 
@@ -99,6 +118,50 @@ def _row(kind: str, name: str, session: str, status: str, message: str, **kw) ->
            "full_path": None, "seconds": 0.0}
     row.update(kw)
     return row
+
+
+FLOAT_COLUMNS = ("saturated_fraction", "coverage_fraction", "sun_elevation_deg", "sun_azimuth_deg")
+
+
+def finite_row(row: dict) -> dict:
+    """``row`` (changed in place) with status ``error`` and the columns named in its message
+    (then null) where a number of :data:`FLOAT_COLUMNS` is NaN or infinite: no such number
+    reaches probes.parquet or a cache entry's JSON."""
+    bad = [key for key in FLOAT_COLUMNS if row.get(key) is not None
+           and not (isinstance(row[key], (int, float)) and math.isfinite(float(row[key])))]
+    if bad:
+        what = ", ".join(f"{key} = {row[key]!r}" for key in bad)
+        reason = (f"session {row['session']}: {row['kind']} {row['name']}: {what} "
+                  f"{'is' if len(bad) == 1 else 'are'} not finite (its view or probe cannot be computed)")
+        row.update({key: None for key in bad})
+        row.update(status="error", message="; ".join(m for m in (reason, row.get("message") or "") if m))
+    if not (isinstance(row.get("seconds"), (int, float)) and math.isfinite(float(row["seconds"]))):
+        row["seconds"] = 0.0
+    return row
+
+
+def checked_rows(rows: list[dict], source: str) -> list[dict]:
+    """``rows`` with every row that would not pass the ``probes`` schema on its own (a NaN, a
+    value out of range, a wrong type) turned into an ``error`` row naming what: one bad row never
+    stops the table from being written."""
+    from f2l.io.schema import table_errors
+    from f2l.io.tables import rows_to_table
+
+    out = []
+    for row in rows:
+        row = finite_row(dict(row))
+        try:
+            errors = table_errors(rows_to_table([row], "probes"), "probes", source)
+        except Exception as exc:  # noqa: BLE001 - a value arrow cannot convert: the row's error
+            errors = [f"{type(exc).__name__}: {exc}"]
+        if errors:
+            keep = {k: row.get(k) if isinstance(row.get(k), str) else str(row.get(k))
+                    for k in ("kind", "name", "session")}
+            kind = keep["kind"] if keep["kind"] in ("view", "probe", "given") else "probe"
+            row = _row(kind, keep["name"], keep["session"], "error",
+                       f"session {keep['session']}: {kind} {keep['name']}: row not valid: " + "; ".join(errors))
+        out.append(row)
+    return out
 
 
 def downsample_plan(height: int, width: int, max_side: int) -> tuple[int, int, int]:
@@ -189,7 +252,7 @@ def _finish_one(work: Path, bid: str, frames: list[dict], opts: ViewOptions, mer
     warnings = list(merged.warnings)
     rgb, space = _to_colour_space(rgb, merged, opts, warnings)
     frame = (full_w, full_h, k, crop_x, crop_y)
-    camera, problem = None, ""
+    camera, problem, failed = None, "", ""
     try:
         camera = camera_for(info, rgb.shape[1], rgb.shape[0], frame=frame, exif_focal_mm=first.get("focal_length_mm"))
         from f2l.capture.lens import lens_from_view
@@ -198,10 +261,12 @@ def _finish_one(work: Path, bid: str, frames: list[dict], opts: ViewOptions, mer
                                                                                       opts.root)
         if gain is not None:
             rgb = rgb / gain[..., None]
-    except ValueError as exc:
+    except (ValueError, ArithmeticError) as exc:
         camera, problem = None, f"{first['path']}: {exc}"
         if first.get("session_problem"):
             problem += f" (session.toml was not used: {first['session_problem']})"
+        if pose_problem(info) or any(key in info for key in LENS_KEYS):  # described, but unusable
+            failed = f"session {session}: bracket {bid}: the view cannot be placed: {problem}"
     rel = f"views/{_safe(bid)}.exr"
     units = "linear Rec.709" if space == "rec709" else "camera RGB"
     write_exr(work / rel, rgb, metadata={"f2l_bracket": bid, "f2l_units": f"{units}, 1.0 = full scale at EV100 0",
@@ -212,11 +277,12 @@ def _finish_one(work: Path, bid: str, frames: list[dict], opts: ViewOptions, mer
                saturated_fraction=float(merged.saturated_fraction), colour_space=space,
                seconds=round(time.perf_counter() - t0, 3))
     if camera is None:
-        row.update(status="unplaced", message=problem)
+        row.update(status="error" if failed else "unplaced", message=failed or problem)
         return row, None
     view = View(image=rgb, camera=camera, saturated=saturated, name=bid)
     _set_sun(row, [view])
-    return row, view
+    finite_row(row)
+    return row, (view if row["status"] == "ok" else None)
 
 
 def merge_bracket_view(root: str | os.PathLike, out_dir: str | os.PathLike, bracket_id: str,
@@ -327,7 +393,10 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
                      grid_width: int = 256, colour_spaces: list[str] | None = None,
                      restore_sun: bool = False, full_probe: bool = False) -> dict:
     """Blend one session's placed views into ``out_dir/probes/<session>.exr`` (+ coverage PNG);
-    returns its ``probes`` row (status ``error`` with the reason when assembly fails).
+    returns its ``probes`` row: status ``error`` with the reason, naming the session, when
+    assembly fails or the probe is not one (:func:`f2l.lighting.plausibility.probe_problem` on the
+    radiance and the coverage mask: black, less than a quarter of the sky seen, NaN/inf), and
+    then no probe file is written.
     ``colour_spaces``: each view's (views in different spaces are not blended). ``restore_sun``:
     a sun saturated in every frame gets its energy back from the sky
     (:mod:`f2l.capture.sun_restore`; flagged in ``sun_restored`` and the message). ``full_probe``:
@@ -335,6 +404,7 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
     from f2l.capture.sphere import assemble
     from f2l.io.exr import REC709_CHROMATICITIES, write_exr
     from f2l.lighting.grid import LatLongGrid
+    from f2l.lighting.plausibility import probe_problem
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -343,10 +413,13 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
         by = {sp: [v.name for v, c in zip(views, colour_spaces) if c == sp] for sp in spaces}
         return _row("probe", session, session, "error", "views in different colour spaces ("
                     + "; ".join(f"{sp}: {', '.join(names)}" for sp, names in by.items()) + ")")
+    names = ", ".join(v.name for v in views)
     try:
-        probe = assemble(views, grid_height, grid_width)
-    except ValueError as exc:
-        return _row("probe", session, session, "error", str(exc))
+        with np.errstate(all="ignore"):
+            probe = assemble(views, grid_height, grid_width)
+    except (ValueError, ArithmeticError) as exc:
+        return _row("probe", session, session, "error", f"session {session}: probe not assembled from "
+                    f"{names}: {exc}", frames=len(views))
     grid = LatLongGrid(grid_height, grid_width)
     rel = f"probes/{_safe(session)}.exr"
     (out_dir / "probes").mkdir(parents=True, exist_ok=True)
@@ -354,6 +427,11 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
     row = _row("probe", session, session, "ok", "", path=rel, frames=len(views),
                saturated_fraction=float((sa * probe.saturated).sum() / sa.sum()),
                coverage_fraction=float((sa * probe.coverage).sum() / sa.sum()), colour_space=spaces[0])
+    problem = probe_problem(probe.radiance, coverage=probe.coverage)
+    if problem:  # never an "ok" probe (nor ground truth) that is black, uncovered or not finite
+        row.update(status="error", path=None, message=f"session {session}: probe refused ({names}): {problem}",
+                   seconds=round(time.perf_counter() - t0, 3))
+        return finite_row(row)
     _set_sun(row, views)
     if row["sun_elevation_deg"] is None and probe.coverage[: grid.height // 2].any():
         from f2l.metrics.lighting import sun_direction
@@ -365,6 +443,13 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
                                       "f2l_colour_space": spaces[0]}
     if restore_sun:
         radiance = _restore_sun(row, probe, grid, meta)
+        problem = probe_problem(radiance, coverage=probe.coverage)
+        if problem:
+            row.update(status="error", path=None, sun_restored=None,
+                       message=f"session {session}: probe refused after the sun's restoration ({names}): {problem}")
+    if finite_row(row)["status"] != "ok":
+        row.update(path=None, seconds=round(time.perf_counter() - t0, 3))
+        return row
     write_exr(out_dir / rel, radiance, metadata=meta,
               chromaticities=REC709_CHROMATICITIES if spaces[0] == "rec709" else None)
     _write_mask_png(out_dir / rel.replace(".exr", ".coverage.png"), probe.coverage)
@@ -389,6 +474,62 @@ def _restore_sun(row: dict, probe, grid, meta: dict) -> np.ndarray:
     row["message"] = "; ".join(m for m in (row["message"], result.message()) if m)
     meta["f2l_sun_restored"] = result.message()
     return radiance
+
+
+def given_probe_on_grid(probe: np.ndarray, label: str, grid_height: int, grid_width: int) -> tuple[np.ndarray, str]:
+    """A given probe (role ``probe``, already read) on the ``grid_height`` x ``grid_width`` grid,
+    area-resampled when its size differs, and a note saying so; ValueError ``"<label>: reason"``
+    when it cannot serve as a probe or ground truth (not a full-sphere lat-long, or
+    :func:`f2l.lighting.plausibility.probe_problem`: black, NaN/inf, negative, too little sky)."""
+    from f2l.lighting.plausibility import probe_problem
+    from f2l.lighting.resample import resample
+
+    probe = np.asarray(probe)
+    if probe.ndim != 3 or probe.shape[2] != 3:
+        raise ValueError(f"{label}: not an RGB image (shape {probe.shape})")
+    h, w = probe.shape[:2]
+    if w != 2 * h:
+        raise ValueError(f"{label}: a {h}x{w} probe is not a full-sphere lat-long (width = 2 x height)")
+    problem = None if np.isfinite(probe).all() else "NaN or infinite values"
+    note = ""
+    if problem is None and (h, w) != (grid_height, grid_width):
+        probe = resample(probe, grid_height, grid_width)
+        note = f"resampled from {h}x{w} to {grid_height}x{grid_width}"
+    problem = problem or probe_problem(probe)
+    if problem:
+        raise ValueError(f"{label}: {problem}")
+    return np.asarray(probe, np.float32), note
+
+
+def read_hdr_bounded(path: str | os.PathLike, max_height: int | None = None) -> np.ndarray:
+    """:func:`f2l.io.probe_io.read_hdr_image`, passing ``max_height`` (the rows the caller needs)
+    where the reader takes it, so that a huge file is decoded in bands or refused by the reader
+    rather than held whole."""
+    import inspect
+
+    from f2l.io.probe_io import read_hdr_image
+
+    if max_height is not None and "max_height" in inspect.signature(read_hdr_image).parameters:
+        return read_hdr_image(path, max_height=int(max_height))
+    return read_hdr_image(path)
+
+
+def _given_row(root: Path, r: dict, grid_height: int, grid_width: int) -> dict:
+    """The ``given`` row of an already-merged probe: ingest's status, or ``error`` (naming the
+    session and the file) when it is unreadable or no probe (:func:`given_probe_on_grid`)."""
+    row = _row("given", r["path"], r["session"], r["status"], r["message"], path=str(root / r["path"]))
+    if r["status"] != "ok":
+        return row
+    try:
+        _, note = given_probe_on_grid(read_hdr_bounded(root / r["path"], grid_height), r["path"],
+                                      grid_height, grid_width)
+    except (ValueError, ArithmeticError) as exc:
+        reason = str(exc).replace(str(root).rstrip("/") + "/", "")
+        row.update(status="error", message=f"session {r['session']}: given probe refused: {reason}")
+    except MemoryError:
+        row.update(status="error", message=f"session {r['session']}: given probe {r['path']}: "
+                                           f"too large to read in the memory available")
+    return row
 
 
 def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict]:
@@ -452,8 +593,14 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
     views: list = []
     spaces: list = []
 
-    def collect(finished) -> None:
-        row, view = finished.result()
+    def collect(pending) -> None:
+        finished, bid, frames = pending
+        try:
+            row, view = finished.result()
+        except Exception as exc:  # noqa: BLE001 - one bracket never loses the batch
+            row, view = _row("view", bid, frames[0]["session"], "error",
+                             f"session {frames[0]['session']}: bracket {bid} ({frames[0]['path']}, ...): "
+                             f"{type(exc).__name__}: {exc}", frames=len(frames)), None
         summary.rows.append(row)
         summary.brackets += 1
         if view is not None:
@@ -465,7 +612,12 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
 
     def assemble(session: str) -> None:
         if views:
-            row = assemble_session(session, views, work, grid_height, grid_width, spaces, restore_sun, full_probe)
+            try:
+                row = assemble_session(session, views, work, grid_height, grid_width, spaces, restore_sun,
+                                       full_probe)
+            except Exception as exc:  # noqa: BLE001 - one session never loses the batch
+                row = _row("probe", session, session, "error", f"session {session}: probe not assembled: "
+                           f"{type(exc).__name__}: {exc}", frames=len(views))
             summary.rows.append(row)
             summary.probes += row["status"] == "ok"
         views.clear()
@@ -495,7 +647,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
             merged = _merge_frames(root, bid, frames, starts.pop(k))
             if pending is not None:
                 collect(pending)
-            pending = writer.submit(_finish_one, work, bid, frames, opts, *merged)
+            pending = (writer.submit(_finish_one, work, bid, frames, opts, *merged), bid, frames)
             del merged
         if pending is not None:
             collect(pending)
@@ -504,9 +656,10 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
         bar.close()
     for r in captures:  # already-merged probes
         if r["role"] == "probe" and r["kind"] == "hdr":
-            summary.rows.append(_row("given", r["path"], r["session"], r["status"], r["message"],
-                                     path=str(root / r["path"])))
+            summary.rows.append(_given_row(root, r, grid_height, grid_width))
     summary.rows.extend(_sessions_without_probe(captures, summary.rows))
+    summary.rows = checked_rows(summary.rows, str(work / "probes.parquet"))
+    summary.probes = sum(r["kind"] == "probe" and r["status"] == "ok" for r in summary.rows)
     summary.errors = sum(r["status"] == "error" for r in summary.rows)
     write_table_atomic(rows_to_table(summary.rows, "probes"), work / "probes.parquet", "probes")
     summary.seconds = round(time.perf_counter() - t_start, 3)

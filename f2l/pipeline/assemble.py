@@ -90,9 +90,10 @@ def _correction(chart: dict | None):
 
 def gt_probe(cache: Cache, session: str, probe: dict, chart: dict | None, note: str,
              azimuth_deg: float | None, counts: dict) -> dict:
-    """The session's ground-truth probe entry: ``{"key", "entry", "applied"}`` (module doc):
-    ``chart`` (a calibrate result, or None: nothing) is applied colour only, with ``note`` saying
-    why it was chosen or not."""
+    """The session's ground-truth probe entry: ``{"key", "entry", "applied", "problem"}`` (module
+    doc): ``chart`` (a calibrate result, or None: nothing) is applied colour only, with ``note``
+    saying why it was chosen or not. ``problem``: why the result is no probe (black, NaN, ...:
+    :func:`f2l.lighting.plausibility.probe_problem`; then the caller must not use it), or None."""
     colour = colour_description(chart, note, False)
     applied = {"source": probe["row"]["kind"], "source_key": probe["key"], "colour": colour,
                "azimuth_deg": azimuth_deg,
@@ -113,13 +114,17 @@ def gt_probe(cache: Cache, session: str, probe: dict, chart: dict | None, note: 
             radiance = rotate_y(radiance, -math.radians(azimuth_deg))
         from f2l.io.exr import REC709_CHROMATICITIES
 
+        from f2l.lighting.plausibility import probe_problem
+
         rec709 = probe["row"].get("colour_space") == "rec709"
         write_exr(tmp / "probe.exr", np.asarray(radiance, np.float32), metadata={"f2l_session": session},
                   chromaticities=REC709_CHROMATICITIES if rec709 else None)
-        return {"applied": applied}
+        problem = probe_problem(np.asarray(radiance, np.float32))
+        return {"applied": applied, **({"problem": problem} if problem else {})}
 
     result, entry = cache.get_or_make("gt-probe", key, produce, counts)
-    return {"key": key, "entry": str(entry), "applied": result["applied"]}
+    return {"key": key, "entry": str(entry), "applied": result["applied"],
+            "problem": result.get("problem")}
 
 
 def shard_chunks(photos: list[dict], photos_per_shard: int) -> list[list[dict]]:

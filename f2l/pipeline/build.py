@@ -38,7 +38,9 @@ STAGES = ("merge", "sphere", "calibrate", "fit-faces", "gt-probe", "shards")
 @dataclass
 class BuildSummary:
     """What one build did: per-stage ``computed`` / ``reused`` entry counts, ingest's ``read`` /
-    ``reused`` files, what publishing wrote, the card's counts, and timings (seconds)."""
+    ``reused`` files, what publishing wrote, the card's counts, its warnings, ``failed`` (the
+    inputs that failed: left-out entries with status ``error``, each with path, stage and reason)
+    and timings (seconds)."""
 
     root: str
     work: str
@@ -49,6 +51,7 @@ class BuildSummary:
     publish: dict = field(default_factory=dict)
     counts: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    failed: list = field(default_factory=list)  # the card's left_out entries with status "error"
     seconds: float = 0.0
     stage_seconds: dict = field(default_factory=dict)
     on_executor: dict = field(default_factory=dict)  # entries made by Ray tasks, per stage (--executor ray)
@@ -147,6 +150,6 @@ def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None
                        "out": str(out.resolve()), "pipeline": spec.source,
                        "nothing_to_do": summary.nothing_to_do, "ingest": summary.ingest,
                        "stages": summary.stages, "publish": summary.publish,
-                       "counts": summary.counts, "seconds": summary.seconds,
+                       "counts": summary.counts, "failed": len(summary.failed), "seconds": summary.seconds,
                        "stage_seconds": summary.stage_seconds})
     return summary

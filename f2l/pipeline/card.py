@@ -105,8 +105,26 @@ def make_card(*, pipeline_json: dict, version_info: dict, inputs: dict, sessions
     return card
 
 
+def non_finite_numbers(value, where: str = "") -> list[str]:
+    """Where ``value`` (JSON-like) holds a NaN or an infinity: ``["sessions[1].probe.x = nan"]``."""
+    import math
+
+    if isinstance(value, float) and not math.isfinite(value):
+        return [f"{where or '(top)'} = {value}"]
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in non_finite_numbers(v, f"{where}.{k}" if where else str(k))]
+    if isinstance(value, (list, tuple)):
+        return [p for i, v in enumerate(value) for p in non_finite_numbers(v, f"{where}[{i}]")]
+    return []
+
+
 def card_text(card: dict) -> str:
-    """The card's bytes (as text): key-sorted, indented JSON, no NaN, trailing newline."""
+    """The card's bytes (as text): key-sorted, indented JSON, no NaN, trailing newline; a NaN or
+    infinity that reached the card is a ValueError naming where it is."""
     import json
 
+    bad = non_finite_numbers(card)
+    if bad:
+        raise ValueError(f"dataset card: not finite, so not JSON: {', '.join(bad[:10])}"
+                         + (f" and {len(bad) - 10} more" if len(bad) > 10 else ""))
     return json.dumps(card, sort_keys=True, indent=1, ensure_ascii=False, allow_nan=False) + "\n"

@@ -2,8 +2,13 @@
 ``app.command("build-dataset")(build_dataset_cmd)``; ``python -m f2l.pipeline.cli`` runs it on
 its own).
 
-Exit codes: 0 built or up to date; 1 the dataset holds no record (the card says why);
-2 bad arguments, pipeline file, capture folder or face model; 3 another build holds the lock.
+Exit codes (one build collects a status per input, writes what it could, atomically, and the
+exit code says whether anything failed): 0 built or up to date and no input failed; 1 the
+dataset holds no record (the card says why); 2 bad arguments, pipeline file, capture folder or
+face model (nothing written); 3 another build holds the lock; 4 built, but some inputs failed
+(status ``error``: an unreadable file, a bracket that could not be merged or placed, a probe
+refused as black, uncovered or not finite): each is printed with its session or file and the
+reason, listed under ``failed`` in ``--json`` and in the card's ``left_out``.
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ def build_dataset_cmd(
     workers: int = typer.Option(2, "--workers", min=1, help="--executor ray without --address: CPUs of the local Ray."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON summary only."),
 ) -> None:
-    """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out."""
+    """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out.
+
+    One bad input never stops the build: it is left out with its reason (a probe that is unreadable, black, sees too little sky or holds NaN is never ground truth). Exit code: 0 built (or up to date) and nothing failed; 1 no record built; 2 bad arguments, pipeline, capture folder or face model; 3 another build holds the lock; 4 built, but some inputs failed (printed with file and reason; `failed` in --json)."""
     from f2l.face.landmarker import LandmarkerError
     from f2l.pipeline.build import build_dataset
     from f2l.pipeline.cache import LockHeld
@@ -57,8 +64,17 @@ def build_dataset_cmd(
                    f"inputs left out -> {out} ({summary.seconds:.1f} s)")
         for warning in summary.warnings[:20]:
             typer.echo(f"  warning: {warning}")
+        if len(summary.warnings) > 20:
+            typer.echo(f"  ... and {len(summary.warnings) - 20} more warnings (dataset_card.json)")
+        for f in summary.failed[:20]:
+            typer.echo(f"  failed: {f['path']} ({f['stage']}): {f['reason']}", err=True)
+        if len(summary.failed) > 20:
+            typer.echo(f"  ... and {len(summary.failed) - 20} more failed inputs (dataset_card.json "
+                       f"left_out, status error)", err=True)
     if not summary.counts.get("records"):
         raise typer.Exit(code=1)
+    if summary.failed:
+        raise typer.Exit(code=4)
 
 
 def main() -> None:

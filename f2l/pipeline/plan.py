@@ -50,17 +50,39 @@ class SessionPlan:
     def given_probe(self) -> dict | None:
         return self.given_probes[0] if self.given_probes else None
 
-    @property
-    def probe_azimuth_deg(self) -> float | None:
-        """The session TOML's ``probe_azimuth_deg`` (from any of its rows), None when not given."""
+    def _probe_azimuth(self):
+        """The session TOML's ``probe_azimuth_deg`` as written (from any of its rows), or None."""
         import json
 
         rows = self.faces + self.charts + self.given_probes + [
             f for frames in self.brackets.values() for f in frames]
         for row in sorted(rows, key=lambda r: r["path"]):
-            view = json.loads(row["view_json"] or "{}")
-            if "probe_azimuth_deg" in view:
-                return float(view["probe_azimuth_deg"])
+            try:
+                view = json.loads(row["view_json"] or "{}")
+            except ValueError:
+                continue
+            if isinstance(view, dict) and "probe_azimuth_deg" in view:
+                return view["probe_azimuth_deg"]
+        return None
+
+    @property
+    def probe_azimuth_deg(self) -> float | None:
+        """The session TOML's ``probe_azimuth_deg`` (from any of its rows), None when not given
+        or not a finite number (:attr:`probe_azimuth_problem` says which)."""
+        import math
+
+        value = self._probe_azimuth()
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        return None
+
+    @property
+    def probe_azimuth_problem(self) -> str | None:
+        """Why the session's ``probe_azimuth_deg`` cannot turn its probe (given, but not a finite
+        number), or None."""
+        value = self._probe_azimuth()
+        if value is not None and self.probe_azimuth_deg is None:
+            return f"probe_azimuth_deg = {value!r} in session.toml is not a finite angle"
         return None
 
 

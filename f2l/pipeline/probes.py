@@ -5,10 +5,15 @@
   :func:`f2l.capture.probes.merge_bracket_view`; ``done`` holds the ``probes`` row.
 - ``sphere`` entry (key: the session, the merge keys and ``view_json`` of its placed views, the
   grid): ``probes/<session>.exr`` + ``.coverage.png`` from
-  :func:`f2l.capture.probes.assemble_session`, reading the merged views back from their entries.
+  :func:`f2l.capture.probes.assemble_session`, reading the merged views back from their entries;
+  a probe that is black, sees less than a quarter of the sky or is not finite
+  (:func:`f2l.lighting.plausibility.probe_problem`) is an ``error`` row, never ground truth.
 - A given probe (role ``probe``: EXR or Radiance ``.hdr``, full-sphere lat-long, W = 2H) is the
   session's probe instead: a ``given-probe`` entry (key: its path, SHA-256 and the grid) holds
-  ``probe.exr``, area-resampled to the grid when its size differs.
+  ``probe.exr``, area-resampled to the grid when its size differs; refused (``error``, naming
+  the session and the file) when unreadable or when it fails the same check.
+- No row holds a NaN or an infinity: such a number makes the row an ``error`` that names it
+  (:func:`f2l.capture.probes.finite_row`), so nothing non-finite reaches a cache entry's JSON.
 
 Probes are in linear Rec.709 from the sky camera's colour matrix (``colour_space``, default) and in
 the session's tripod frame here; the chart's refinement and the turn to the face camera's frame
@@ -27,12 +32,17 @@ from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import SessionPlan, relative_message
 
 MERGE_VERSION = 2  # 2: colour matrix to Rec.709, lens descriptions and fall-off models (f2l.capture.lens)
-SPHERE_VERSION = 2  # 2: sun from the views, colour space in the EXR and the row
-GIVEN_PROBE_VERSION = 1
+SPHERE_VERSION = 3  # 2: sun from the views, colour space in the EXR and the row; 3: black/uncovered probes refused
+GIVEN_PROBE_VERSION = 2  # 2: black, uncovered or non-finite given probes refused (probe_problem)
 
 
 def _clean_row(row: dict, root) -> dict:
-    out = {k: v for k, v in row.items() if k != "seconds"}
+    """A stage row for a cache entry: no timing, no absolute path, no NaN (a non-finite number
+    makes the row an ``error`` naming it, :func:`f2l.capture.probes.finite_row`)."""
+    from f2l.capture.probes import finite_row
+
+    out = finite_row({k: v for k, v in row.items() if k != "seconds"})
+    out.pop("seconds", None)
     out["message"] = relative_message(out.get("message", ""), root)
     return out
 
@@ -86,24 +96,26 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
                     {"grid": list(grid_hw), "restore_sun": bool(restore_sun)})
 
     def produce(tmp: Path) -> dict:
-        from f2l.capture.probes import assemble_session, load_view
+        from f2l.capture.probes import assemble_session, finite_row, load_view
 
         t0 = time.perf_counter()
         views = [load_view(m["entry"], m["row"], m["view_json"], m.get("focal_length_mm")) for m in placed]
         row = assemble_session(plan.name, views, tmp, *grid_hw, [m["row"].get("colour_space") for m in placed],
                                restore_sun)
         timings[f"sphere {plan.name}"] = round(time.perf_counter() - t0, 3)
-        return {"row": {k: v for k, v in row.items() if k != "seconds"}}
+        return {"row": {k: v for k, v in finite_row(row).items() if k != "seconds"}}
 
     result, entry = cache.get_or_make("sphere", key, produce, counts)
     return {"key": key, "row": result["row"], "entry": str(entry)}
 
 
-def read_probe_file(path: Path) -> np.ndarray:
-    """(H, W, 3) float32 of an EXR, Radiance ``.hdr``, PFM or float TIFF (ValueError naming the file)."""
-    from f2l.io.probe_io import read_hdr_image
+def read_probe_file(path: Path, max_height: int | None = None) -> np.ndarray:
+    """(H, W, 3) float32 of an EXR, Radiance ``.hdr``, PFM or float TIFF (ValueError naming the
+    file). ``max_height``: the rows the caller needs (the grid's), passed to the reader where it
+    takes it (a bounded, banded decode of a huge file, or a refusal naming it)."""
+    from f2l.capture.probes import read_hdr_bounded
 
-    return read_hdr_image(path)
+    return read_hdr_bounded(path, max_height)
 
 
 def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int, int],
@@ -116,27 +128,19 @@ def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int,
                     {"grid": list(grid_hw)})
 
     def produce(tmp: Path) -> dict:
+        from f2l.capture.probes import given_probe_on_grid
         from f2l.io.exr import write_exr
-        from f2l.lighting.resample import resample
 
         out = {"kind": "given", "name": row["path"], "session": plan.name, "status": "ok",
                "message": "", "path": None}
         try:
-            probe = read_probe_file(root / row["path"])
-            h, w = probe.shape[:2]
-            if w != 2 * h:
-                raise ValueError(f"{row['path']}: a {h}x{w} probe is not a full-sphere lat-long "
-                                 f"(width = 2 x height)")
-            if not np.isfinite(probe).all() or probe.min() < 0:
-                raise ValueError(f"{row['path']}: probe has NaN, infinite or negative values")
-            if (h, w) != tuple(grid_hw):
-                probe = resample(probe, *grid_hw)
-                out["message"] = f"resampled from {h}x{w} to {grid_hw[0]}x{grid_hw[1]}"
-            write_exr(tmp / "probe.exr", np.asarray(probe, np.float32),
-                      metadata={"f2l_session": plan.name})
+            probe, out["message"] = given_probe_on_grid(read_probe_file(root / row["path"], grid_hw[0]),
+                                                        row["path"], *grid_hw)
+            write_exr(tmp / "probe.exr", probe, metadata={"f2l_session": plan.name})
             out["path"] = "probe.exr"
-        except ValueError as exc:
-            out.update(status="error", message=relative_message(str(exc), root))
+        except (ValueError, ArithmeticError) as exc:  # not MemoryError: that is no property of the file
+            out.update(status="error", message=f"session {plan.name}: given probe refused: "
+                                               + relative_message(str(exc), root))
         return {"row": out}
 
     result, entry = cache.get_or_make("given-probe", key, produce, counts)

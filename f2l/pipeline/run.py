@@ -46,16 +46,33 @@ def _ingest(spec, root: Path, work: Path, summary) -> list[dict]:
 
 def _session_probe(cache, root, plan, spec, counts, timings, left_out, warnings):
     """(probe entry or None, sky camera or None for a given probe, brackets merged) of one
-    session."""
+    session. A probe that failed (an ``error`` row: unreadable, black, uncovered, NaN) or that
+    could not be computed at all is left out with its reason and is never ground truth; one
+    session's failure never stops the build."""
+    try:
+        return _session_probe_or_raise(cache, root, plan, spec, counts, timings, left_out, warnings)
+    except Exception as exc:  # noqa: BLE001 - recorded for this session; the other sessions go on
+        what = plan.given_probe["path"] if plan.given_probe is not None else plan.name
+        reason = relative_message(f"{type(exc).__name__}: {exc}", root)
+        left_out.append({"path": what, "stage": "sphere", "status": "error",
+                         "reason": f"session {plan.name}: probe not computed: {reason}"})
+        warnings.append(f"session {plan.name}: probe failed ({what}): {reason}: its faces have no "
+                        f"ground-truth probe")
+        return None, None, 0
+
+
+def _session_probe_or_raise(cache, root, plan, spec, counts, timings, left_out, warnings):
     grid_hw = (spec.grid_height, spec.grid_width)
     if plan.given_probe is not None:
         probe = probes.given_probe(cache, root, plan, grid_hw, counts["sphere"])
-        sky_camera, n_ok = None, 0  # a given probe is used as it is: no colour correction
+        sky_camera, n_ok, what = None, 0, plan.given_probe["path"]
     elif plan.brackets:
         merged = probes.merge_session(cache, root, plan, spec.params("merge"), counts["merge"],
                                       timings)
+        failed = []
         for m in merged:
             if m["row"]["status"] != "ok":
+                failed.append(f"{m['row']['name']} {m['row']['status']}: {m['row']['message']}")
                 for frame in sorted(plan.brackets[m["row"]["name"]], key=lambda f: f["path"]):
                     left_out.append({"path": frame["path"], "stage": "merge",
                                      "status": m["row"]["status"], "reason": m["row"]["message"]})
@@ -64,15 +81,18 @@ def _session_probe(cache, root, plan, spec, counts, timings, left_out, warnings)
                                       bool(spec.params("sphere").get("restore_sun", False)))
         first = sorted(plan.brackets[sorted(plan.brackets)[0]], key=lambda f: f["path"])[0]
         sky_camera = first["camera"] or ""
+        what = "assembled from " + ", ".join(sorted(plan.brackets))
         if probe is None:
-            warnings.append(f"session {plan.name}: no bracket could be placed on the sphere: "
-                            f"its faces have no ground-truth probe")
+            warnings.append(f"session {plan.name}: no bracket could be placed on the sphere ("
+                            + "; ".join(failed) + "): its faces have no ground-truth probe")
     else:
         return None, None, 0
     if probe is not None and probe["row"]["status"] != "ok":
-        left_out.append({"path": probe["row"]["name"], "stage": "sphere",
-                         "status": probe["row"]["status"], "reason": probe["row"]["message"]})
-        warnings.append(f"session {plan.name}: probe failed: its faces have no ground-truth probe")
+        row = probe["row"]
+        left_out.append({"path": row["name"], "stage": "sphere", "status": row["status"],
+                         "reason": row["message"]})
+        warnings.append(f"session {plan.name}: probe failed ({what}): {row['message'] or row['status']}: "
+                        f"its faces have no ground-truth probe")
         probe = None
     return probe, sky_camera, n_ok
 
@@ -141,6 +161,7 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
         counts[stage]["reused"] -= made
     text = card.card_text(doc)
     summary.counts, summary.warnings = doc["counts"], doc["warnings"]
+    summary.failed = [r for r in doc["left_out"] if r["status"] == "error"]
     if up_to_date(work, out, files, text):
         summary.publish = {"written": 0, "kept": len(files), "removed": 0}
         summary.nothing_to_do = not any(c["computed"] for c in counts.values())
@@ -198,6 +219,13 @@ def _pair(cache, spec, sessions, state, fits, counts, left_out, warnings):
     for plan in sessions:
         st = state[plan.name]
         st["gt"] = None
+        if st["probe"] is not None and plan.probe_azimuth_problem:
+            left_out.append({"path": st["probe"]["row"]["name"], "stage": "gt-probe", "status": "error",
+                             "reason": f"session {plan.name}: {plan.probe_azimuth_problem}"})
+            warnings.append(f"session {plan.name}: probe failed: {plan.probe_azimuth_problem}: the "
+                            f"probe cannot be turned into the face camera's frame: its faces have no "
+                            f"ground-truth probe")
+            st["probe"] = None
         if st["probe"] is not None:
             if st["sky_camera"] is None:
                 chart, note = None, "a given probe is used as it is (its colour space is its own)"
@@ -207,6 +235,13 @@ def _pair(cache, spec, sessions, state, fits, counts, left_out, warnings):
                 chart, note = assemble.pick_correction(st["charts"], st["sky_camera"])
             st["gt"] = assemble.gt_probe(cache, plan.name, st["probe"], chart, note,
                                          plan.probe_azimuth_deg, counts["gt-probe"])
+            if st["gt"].get("problem"):
+                reason = f"session {plan.name}: ground-truth probe refused: {st['gt']['problem']}"
+                left_out.append({"path": st["probe"]["row"]["name"], "stage": "gt-probe",
+                                 "status": "error", "reason": reason})
+                warnings.append(f"{reason} (after {st['gt']['applied']['colour']['method']} colour "
+                                f"correction): its faces have no ground-truth probe")
+                st["gt"] = None
             if plan.probe_azimuth_deg is None:
                 warnings.append(f"session {plan.name}: session.toml has no probe_azimuth_deg: "
                                 f"the probe is in its tripod frame, not the face camera's")
@@ -233,7 +268,7 @@ def _pair(cache, spec, sessions, state, fits, counts, left_out, warnings):
                            "gt": st["gt"]})
             records += len(fit["face_ids"])
         probe_card = None
-        if st["probe"] is not None:
+        if st["gt"] is not None:
             row = st["probe"]["row"]
             probe_card = {"source": row["kind"], "status": row["status"],
                           "file": f"probes/{assemble.safe_name(plan.name)}.exr",
