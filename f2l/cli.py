@@ -311,22 +311,36 @@ def _fit_probe_inputs(probes: list[Path], model: str, grid: str, json_out: bool,
 
 @app.command("fit-probe")
 def fit_probe_cmd(
-    probes: list[Path] = typer.Argument(..., help="Lat-long HDR probes (.exr) or folders of them."),
+    probes: list[Path] = typer.Argument(..., help="Lat-long HDR probes (.exr, .hdr, .pfm, float .tif) or folders of them."),
     model: str = typer.Option(..., "--model", "-m", help="Lighting model name."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write fit_probe.csv and fitted probes here."),
     grid: str = typer.Option("64x128", help="Model grid HxW (probes are resampled to it)."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Fit a lighting model directly to HDR probes (paper Table 1); report the sun angle where known."""
-    from f2l.estimate.prior_build import write_fit_report
+    """Fit a lighting model directly to HDR probes (paper Table 1); report the sun angle where known.
 
-    m, records = _fit_probe_inputs(probes, model, grid, json_out, "fit-probe", out)
+    A probe that cannot be fitted (unreadable, malformed side file, black, implausible) is a row
+    with status "error" and its reason; the others are fitted and the table is written. Exit code
+    1 when any probe failed."""
+    from f2l.estimate.prior_build import write_fit_report
+    from f2l.estimate.probe_fit import fit_probe_files, list_probe_files
+
+    paths, skipped = list_probe_files(probes)
+    for message in skipped:
+        typer.echo(f"f2l: {message}", err=True)
+    if not paths:
+        _fail("no .exr probes found (nor .hdr, .rgbe, .tif, .tiff, .pfm) in " + ", ".join(map(str, probes)))
+    m = _load_model_or_fail(model, _grid(grid))
+    step, close = _progress(len(paths), f"fit-probe {model}", not json_out)
+    records = fit_probe_files(paths, m, progress=step, out_dir=out)
+    close()
     summary = write_fit_report(records, m, out)
+    summary["skipped"] = skipped
     if json_out:
         typer.echo(json.dumps(summary))
     else:
         typer.echo(summary["markdown"])
-    if summary["ok"] == 0:
+    if summary["errors"]:
         raise typer.Exit(code=1)
 
 

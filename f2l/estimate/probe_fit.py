@@ -29,7 +29,8 @@ import torch
 from f2l.estimate.params import BoxTransform
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["ProbeFit", "ProbeFitError", "fit_probe", "probe_fit_loss"]
+__all__ = ["ProbeFit", "ProbeFitError", "fit_probe", "probe_fit_loss", "MAX_PROBE_RADIANCE", "list_probe_files",
+           "read_side_file", "fit_probe_file", "fit_probe_files"]
 
 START_MARGIN = 1e-3  # starts sit at least this fraction of a bounded range inside it (a sigmoid
 #                     at its 1e-6 clip has no gradient left: a kappa start at 8192 could never move)
@@ -221,3 +222,157 @@ def minimise_restarted(objective, x0: torch.Tensor, max_iter: int, tolerance: fl
             break  # this run made no progress: a stationary point, not a stale memory
         previous = loss
     return kept, used
+
+
+# -- fit-probe over files: listing, side files, per-probe errors ----------------------------------------
+
+MAX_PROBE_RADIANCE = 1e30
+"""Brightest texel (linear radiance, the file's own units) a probe may hold to be fitted. The sun
+is ~1e9 cd/m² and an HDR capture spans ~1e7 between sun and shadow, so 1e30 leaves 20 orders of
+magnitude for any exposure scale; a file beyond it (float32 ends at 3.4e38) is refused as
+implausible, because a fit's sums and products of such values overflow float32 when the fitted
+probe is written."""
+
+SIDE_FILE_SUFFIX = ".json"
+"""A probe's side file is ``<probe>.json`` beside it (``sky_0001.exr`` → ``sky_0001.json``): keys
+``kind`` (a short string) and ``sun_direction`` (3 finite numbers, not all zero, or null) are
+used; other keys are ignored."""
+
+
+def list_probe_files(inputs) -> tuple[list, list[str]]:
+    """(probe paths, messages about the files left out) for ``fit-probe``'s arguments: a file
+    named directly is taken as it is (it gets a per-probe error if unreadable); a folder gives its
+    HDR images of every format :func:`f2l.io.probe_io.read_hdr_image` reads
+    (:data:`~f2l.io.probe_io.HDR_IMAGE_EXTENSIONS`), sorted, recursively; any other file in it,
+    apart from the probes' side files, is left out with a message."""
+    from pathlib import Path
+
+    from f2l.io.probe_io import HDR_IMAGE_EXTENSIONS
+
+    found, skipped = [], []
+    for item in inputs:
+        p = Path(item)
+        if not p.is_dir():
+            found.append(p)
+            continue
+        files = sorted(f for f in p.rglob("*") if f.is_file())
+        probes = [f for f in files if f.suffix.lower() in HDR_IMAGE_EXTENSIONS]
+        sides = {f.with_suffix(SIDE_FILE_SUFFIX) for f in probes}
+        found.extend(probes)
+        skipped.extend(f"{f}: skipped: not an HDR image ({', '.join(HDR_IMAGE_EXTENSIONS)})"
+                       for f in files if f.suffix.lower() not in HDR_IMAGE_EXTENSIONS and f not in sides)
+    return found, skipped
+
+
+def read_side_file(path) -> dict:
+    """The validated side file of probe ``path`` (:data:`SIDE_FILE_SUFFIX`), {} when there is
+    none; ValueError naming the side file and the key for anything malformed (bounded JSON
+    through :func:`f2l.io.bounded.load_json`: depth, string length, NaN/inf)."""
+    from pathlib import Path
+
+    from f2l.io.bounded import load_json
+
+    side = Path(path).with_suffix(SIDE_FILE_SUFFIX)
+    if not side.is_file():
+        return {}
+    try:
+        data = side.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{side}: unreadable side file ({exc.strerror or exc})") from exc
+    info = load_json(data, str(side))
+    if not isinstance(info, dict):
+        raise ValueError(f"{side}: a side file must hold a JSON object, got {type(info).__name__}")
+    kind = info.get("kind")
+    if kind is not None and not (isinstance(kind, str) and 0 < len(kind) <= 64):
+        raise ValueError(f"{side}: kind must be a string of 1 to 64 characters, got {str(kind)[:80]!r}")
+    sun = info.get("sun_direction")
+    if sun is not None:
+        ok = (isinstance(sun, list) and len(sun) == 3
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in sun))
+        vec = np.asarray(sun, dtype=np.float64) if ok else None
+        if not ok or not np.isfinite(vec).all() or not np.linalg.norm(vec) > 1e-12:
+            raise ValueError(f"{side}: sun_direction must be 3 finite numbers, not all zero, got {str(sun)[:80]!r}")
+    return info
+
+
+def _finite_float32(name: str, values) -> None:
+    arr = np.asarray(values, dtype=np.float64)
+    if not np.isfinite(arr).all() or (arr.size and float(np.abs(arr).max()) > float(np.finfo(np.float32).max)):
+        raise ProbeFitError(f"the fitted {name} overflows float32")
+
+
+def fit_probe_file(path, model, out_dir=None, **fit_options):
+    """``fit_probe`` on one probe file → a :class:`f2l.estimate.prior_build.ProbeRecord`; every
+    failure (unreadable or oversized file, malformed side file, black, uncovered or implausibly
+    bright probe, a fit or a fitted probe that overflows float32) is a record with status
+    "error" and a message naming the file, never an exception. The file is read at most at the
+    model's grid size (a larger image is decoded in bands, :func:`f2l.io.probe_io.read_hdr_image`);
+    with ``out_dir`` the fitted probe is written there as ``<stem>_<model>.exr`` (atomically)."""
+    from pathlib import Path
+
+    from f2l.estimate.prior_build import ProbeRecord, probe_fit_metrics
+    from f2l.io.exr import write_exr
+    from f2l.io.probe_io import hdr_image_size, read_hdr_image
+    from f2l.lighting.plausibility import probe_problem
+
+    path = Path(path)
+    grid = model.grid
+    kind = None
+    try:
+        info = read_side_file(path)
+        kind = info.get("kind")
+        height, width = hdr_image_size(path)
+        if (height, width) != (grid.height, grid.width) and width != 2 * height:
+            raise ProbeFitError(f"probe must be a lat-long (H, 2H, 3) image, got {width}x{height}")
+        probe = read_hdr_image(path, (grid.height, grid.width))
+        if probe.shape[1] == 2 * probe.shape[0] and probe.shape[0] % 2 == 0:
+            problem = probe_problem(probe)
+            if problem:
+                raise ProbeFitError(problem)
+        brightest = float(probe.max()) if probe.size else 0.0
+        if brightest > MAX_PROBE_RADIANCE:
+            raise ProbeFitError(f"brightest texel {brightest:.3g} exceeds the plausible radiance bound "
+                                f"{MAX_PROBE_RADIANCE:g} (MAX_PROBE_RADIANCE)")
+        fit = fit_probe(probe, model, **fit_options)
+        _finite_float32("parameters", fit.params)
+        _finite_float32("probe", fit.probe)
+        rec = ProbeRecord(str(path), "ok", params=fit.params.tolist(), loss=fit.loss,
+                          runtime_s=fit.runtime_s, kind=kind,
+                          sun_direction=None if fit.sun_direction is None else
+                          [float(v) for v in fit.sun_direction])
+        rec.extra["metrics"] = probe_fit_metrics(fit, probe, grid)
+        rec.extra["variants"] = {name: {"metrics": probe_fit_metrics(v, probe, grid),
+                                        "runtime_s": v.runtime_s, "params": v.params.tolist()}
+                                 for name, v in fit.variants.items()}
+        if out_dir is not None:
+            fitted_path = Path(out_dir) / f"{path.stem}_{model.name}.exr"
+            write_exr(fitted_path, fit.probe)
+            rec.extra["fitted_probe"] = str(fitted_path)
+            for name, v in fit.variants.items():
+                write_exr(Path(out_dir) / f"{path.stem}_{name}.exr", v.probe)
+        true_sun = info.get("sun_direction")
+        if true_sun is not None and fit.sun_direction is not None:
+            t = np.asarray(true_sun, dtype=np.float64)
+            c = float(np.clip(np.dot(t / np.linalg.norm(t), fit.sun_direction), -1.0, 1.0))
+            rec.true_sun_direction = [float(v) for v in t]
+            rec.sun_angle_deg = math.degrees(math.acos(c))
+        return rec
+    except (ProbeFitError, OSError, ValueError, ArithmeticError, RuntimeError, MemoryError) as exc:
+        # (a MemoryError or a torch RuntimeError is this probe's failure: the others go on)
+        message = str(exc) if str(path) in str(exc) or str(path.with_suffix(SIDE_FILE_SUFFIX)) in str(exc) \
+            else f"{path}: {exc}"
+        return ProbeRecord(str(path), "error", message, kind=kind)
+
+
+def fit_probe_files(paths, model, progress=None, out_dir=None, **fit_options) -> list:
+    """:func:`fit_probe_file` on every path, in order (one bad probe never stops the others)."""
+    from pathlib import Path
+
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    records = []
+    for path in paths:
+        records.append(fit_probe_file(path, model, out_dir, **fit_options))
+        if progress:
+            progress(1)
+    return records
