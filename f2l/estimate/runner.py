@@ -59,7 +59,7 @@ def run_estimates(
     ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
     EstimatorConfig's (ignored with ``config``)."""
     from f2l.estimate import resume
-    from f2l.io.shards import BadRecord, count_records, iter_records, shard_files
+    from f2l.io.shards import BadRecord, count_records, declared_size_problem, iter_records, shard_files
     from f2l.models.registry import model_class
 
     if executor not in ("local", "ray"):
@@ -105,17 +105,23 @@ def run_estimates(
 
     def tasks():
         """(record or BadRecord, model) pairs still to do; done ones are counted and skipped. A
-        face_id read before (this or an earlier shard) becomes a BadRecord: only the first is
-        estimated, so no probe of it is overwritten."""
+        face_id read before (this or an earlier shard, good or bad) becomes a duplicate BadRecord:
+        only the first is estimated, so no probe of it is overwritten, and a run writes one row
+        per (face_id, model) besides its duplicates."""
         for shard in shards:
             for path in shard_files(shard):
                 for rec in iter_records(path):
                     if not isinstance(rec, BadRecord):
-                        if rec.face_id in first_in:
-                            rec = BadRecord(str(path), rec.face_id,
-                                            f"duplicate face_id (first in {first_in[rec.face_id]})")
-                        else:
-                            first_in[rec.face_id] = str(path)
+                        empty = declared_size_problem(rec.num_pixels, rec.grid_height,
+                                                      rec.grid_width, min_pixels=1)
+                        if empty is not None:  # a shard may store it; there is nothing to fit
+                            rec = BadRecord(str(path), rec.face_id, empty)
+                    if rec.face_id is not None and rec.face_id in first_in:  # one row per key a run
+                        also = f"; {rec.reason}" if isinstance(rec, BadRecord) else ""
+                        rec = BadRecord(str(path), rec.face_id,
+                                        f"duplicate face_id (first in {first_in[rec.face_id]}){also}")
+                    elif rec.face_id is not None:
+                        first_in[rec.face_id] = str(path)
                     for name in models:
                         if isinstance(rec, BadRecord) and rec.reason.startswith("duplicate face_id"):
                             yield rec, name  # never done: the first one's row holds the key
