@@ -102,6 +102,18 @@ def _good_is_fine(tree) -> None:
     assert json.loads(good[0]["view_json"])["pitch_deg"] == 90.0
 
 
+def _refused(tree, session: str, *needles: str) -> list[dict]:
+    """The session's 3 frames: ``error`` rows outside any bracket, naming its session.toml and
+    every needle."""
+    rows = _session_rows(tree, session)
+    assert len(rows) == 3
+    for r in rows:
+        assert r["status"] == "error" and r["bracket_id"] is None, r
+        for needle in (str(tree["root"] / session / "session.toml"), *needles):
+            assert needle in r["message"], r["message"]
+    return rows
+
+
 def test_ingest_exit_code_and_good_session(tree):
     assert tree["res"].exit_code == 0  # bad input is reported, never stops the ingest
     _good_is_fine(tree)
@@ -122,11 +134,7 @@ def test_non_finite_and_deep_session_toml_is_a_session_problem(tree):
 def test_implausible_lens_is_a_row_error_at_ingest(tree):
     for session, key in (("huge", "lens/focal_length_px"), ("tiny", "lens/focal_length_mm"),
                          ("pp", "lens/principal_point_px")):
-        rows = _session_rows(tree, session)
-        assert len(rows) == 3
-        for r in rows:
-            assert r["status"] == "error" and r["bracket_id"] is None, r
-            assert str(tree["root"] / session / "session.toml") in r["message"] and key in r["message"], r["message"]
+        _refused(tree, session, key)
         assert any(w.startswith(f"session {session}:") and key in w for w in tree["summary"]["warnings"])
     ids = {b["bracket_id"] for b in tree["summary"]["bracket_list"]}
     assert not ids & {"huge/frame_00", "tiny/frame_00", "pp/frame_00"}
@@ -161,12 +169,7 @@ def test_glob_matching_nothing_is_a_warning(tree):
 def test_paths_out_of_the_session_are_refused(tree):
     for session, why in (("dotdot", "leaves the session folder"), ("abs", "absolute path"),
                          ("link", "symbolic link")):
-        rows = _session_rows(tree, session)
-        assert len(rows) == 3
-        for r in rows:
-            assert r["status"] == "error" and r["bracket_id"] is None, r
-            assert "lens/falloff/file" in r["message"] and why in r["message"] and "--allow-outside" in r["message"]
-            assert str(tree["root"] / session / "session.toml") in r["message"]
+        for r in _refused(tree, session, "lens/falloff/file", why, "--allow-outside"):
             assert "sha256" not in json.loads(r["view_json"])["falloff"]  # never opened
     # a path that stays inside (even through "..") is recorded relative to the root, with its hash
     inside = _session_rows(tree, "inside")
