@@ -17,8 +17,8 @@ and is re-exported here.
 A record from outside is read with bounds, before anything is allocated from what it declares
 (:func:`declared_size_problem`): a lighting grid of at most :data:`MAX_GRID_TEXELS` texels
 (``$F2L_MAX_GRID_TEXELS``), at most :data:`MAX_RECORD_PIXELS` face pixels
-(``$F2L_MAX_RECORD_PIXELS``), a row group no larger (uncompressed, from the
-file's footer) than its declared sizes need, and a ``meta_json`` read by
+(``$F2L_MAX_RECORD_PIXELS``), array columns of no more values and a row group of no more bytes
+(uncompressed; both from the file's footer) than its declared sizes need, and a ``meta_json`` read by
 :func:`f2l.io.bounded.load_json` (depth, string length, size, finite numbers). A record beyond
 them becomes a :class:`BadRecord` naming the file, the record and the reason.
 """
@@ -546,29 +546,42 @@ def iter_records(shards: str | os.PathLike | Iterable[str | os.PathLike],
 
 
 _SIZE_COLUMNS = ("face_id", "num_pixels", "grid_height", "grid_width")
+_LIST_WIDTH = {"pixel_rc": 2, "points": 3, "normals": 3, "observed_rgb": 3, "mask": 1}  # per pixel
 
 
 def _precheck_row_group(pf: pq.ParquetFile, rg: int) -> tuple[list[tuple[str | None, str | None]], str | None]:
     """Before a row group's arrays are read: per row ``(face_id, problem or None)`` from its
-    declared sizes, and a problem of the whole group (its size columns unreadable, or more bytes
-    uncompressed, per the file's footer, than the accepted rows' declared sizes need)."""
+    declared sizes, and a problem of the whole group, from the file's footer: its size columns
+    unreadable, every row refused, an array column holding more values than its accepted rows
+    declare, or more bytes uncompressed than their declared sizes need."""
     names = set(pf.schema_arrow.names)
     missing = [c for c in _SIZE_COLUMNS if c not in names]
     if missing:
         return [], f"missing column(s) {', '.join(missing)}"
     try:
         rows = pf.read_row_group(rg, columns=list(_SIZE_COLUMNS)).to_pylist()
-        group_bytes = int(pf.metadata.row_group(rg).total_byte_size)
+        meta = pf.metadata.row_group(rg)
+        group_bytes = int(meta.total_byte_size)
+        values = {meta.column(j).path_in_schema.split(".")[0]: int(meta.column(j).num_values)
+                  for j in range(meta.num_columns)}
     except Exception as exc:  # noqa: BLE001
         return [], f"unreadable: {type(exc).__name__}: {exc}"
     refused: list[tuple[str | None, str | None]] = []
-    need = _ROW_GROUP_SLACK_BYTES
+    need, pixels = _ROW_GROUP_SLACK_BYTES, []
     for r in rows:
         face_id = r["face_id"] if isinstance(r["face_id"], str) else None
         problem = declared_size_problem(r["num_pixels"], r["grid_height"], r["grid_width"])
         refused.append((face_id, problem))
         if problem is None:
             need += 2 * _declared_bytes(r["num_pixels"], r["grid_height"], r["grid_width"])
+        pixels.append(int(r["num_pixels"]) if problem is None else 0)
+    if all(problem is not None for _, problem in refused):
+        return refused, "refused"  # each row's own reason; nothing more is read
+    for name, width in _LIST_WIDTH.items():
+        declared = sum(max(n * width, 1) for n in pixels)  # an empty list still takes a slot
+        if values.get(name, 0) > declared:
+            return refused, (f"column {name!r} holds {values[name]} values, more than the "
+                             f"{declared} its records declare (num_pixels x {width}); not read")
     if group_bytes > need:
         return refused, (f"{group_bytes} bytes uncompressed, more than its records' declared sizes "
                          f"(num_pixels, grid_height x grid_width) need ({need}); not read")
