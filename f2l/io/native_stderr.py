@@ -12,6 +12,11 @@ blocks that overlap, in one thread (nested) or several (a thread pool decoding E
 descriptor once and restore it when the last of them ends; no block can leave fd 1 or 2 pointing
 at another block's temporary file. Each block hands over the complete lines written while it
 ran; with overlapping blocks a line may be handed to either of them.
+
+Bindings also print through Python (OpenEXR's pybind11 module calls ``print``, i.e.
+``sys.stdout``), which a replaced ``sys.stdout`` (a test runner's capture, an embedding host) would
+take past the descriptor: while a block runs, ``sys.stdout``/``sys.stderr`` are swapped for
+writers into the same temporary files.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ class _Redirect:
         self.fd = fd
         self.depth = 0
         self.saved: int | None = None
+        self.saved_stream = None
         self.sink = None
         self.read_at = 0
         self.partial = b""
@@ -51,6 +57,10 @@ class _Redirect:
             sink = tempfile.TemporaryFile()
             os.dup2(sink.fileno(), self.fd)
             self.saved, self.sink, self.read_at, self.partial = saved, sink, 0, b""
+            if self.fd in (1, 2):
+                name = "stdout" if self.fd == 1 else "stderr"
+                self.saved_stream = getattr(sys, name)
+                setattr(sys, name, _StreamSink(sink.fileno(), self.saved_stream))
         self.depth += 1
         return True
 
@@ -73,6 +83,9 @@ class _Redirect:
             _flush_native()
             return self.take(final=False)
         _flush(self.fd)
+        if self.fd in (1, 2):
+            setattr(sys, "stdout" if self.fd == 1 else "stderr", self.saved_stream)
+            self.saved_stream = None
         try:
             os.dup2(self.saved, self.fd)
         finally:
@@ -81,6 +94,32 @@ class _Redirect:
             self.sink.close()
             self.saved = self.sink = None
         return lines
+
+
+class _StreamSink:
+    """Stands in for ``sys.stdout``/``sys.stderr`` during a block: text goes to the sink file."""
+
+    def __init__(self, fd: int, original):
+        self._fd = fd
+        self.encoding = getattr(original, "encoding", None) or "utf-8"
+        self.errors = "replace"
+
+    def write(self, text: str) -> int:
+        os.write(self._fd, str(text).encode("utf-8", "replace"))
+        return len(text)
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    def fileno(self) -> int:
+        return self._fd
 
 
 _REDIRECTS = {1: _Redirect(1), 2: _Redirect(2)}
