@@ -91,7 +91,6 @@ def test_banded_exr_read_equals_the_full_memory_resample(tmp_path):
     banded = read_hdr_image(path, (64, 128), max_pixels=500_000, band_pixels=100_000)
     assert banded.shape == (64, 128, 3) and banded.dtype == np.float32
     np.testing.assert_allclose(banded, full, rtol=1e-6)
-    # total energy (sum L dOmega) is kept: the sun's 12 texels are not lost between bands
     # within the limit the image comes back whole, whatever the target (callers resample it)
     assert read_hdr_image(path, (64, 128)).shape == (1000, 2000, 3)
 
