@@ -251,3 +251,28 @@ def test_build_dataset_terminal_names_the_file_and_the_reason(tree, built):
     assert res.exit_code == 4, res.output
     assert "failed: zero/probes/given.exr" in res.output and "black" in res.output
     assert "session down: probe failed" in res.output
+
+
+def test_a_given_probe_over_the_decode_limit_is_read_to_the_grid(tmp_path, monkeypatch):
+    """A given probe larger than the readers' decode limit is area-averaged to the grid in bands
+    (memory bounded by the grid), not decoded whole; one that is no lat-long is refused from its
+    header. (The limit is lowered here: the real case is a 20000 x 10000 EXR.)"""
+    from f2l.capture.probes import _given_row
+    from f2l.io.exr import write_exr
+    from f2l.lighting.resample import resample
+
+    sky = np.zeros((64, 128, 3), np.float32)
+    sky[:32] = np.linspace(1.0, 2.0, 128, dtype=np.float32)[None, :, None]
+    (tmp_path / "s").mkdir()
+    write_exr(tmp_path / "s" / "big.exr", sky)
+    write_exr(tmp_path / "s" / "wide.exr", np.ones((64, 100, 3), np.float32))
+    monkeypatch.setenv("F2L_MAX_DECODE_PIXELS", "4000")  # 8192 px: over it
+    capture = {"session": "s", "status": "ok", "message": ""}
+    row = _given_row(tmp_path, {**capture, "path": "s/big.exr"}, 16, 32)
+    assert row["status"] == "ok" and "resampled from 64x128 to 16x32" in row["message"], row
+    row = _given_row(tmp_path, {**capture, "path": "s/wide.exr"}, 16, 32)
+    assert row["status"] == "error" and "s/wide.exr" in row["message"] and "lat-long" in row["message"]
+    from f2l.capture.probes import read_given_probe
+
+    np.testing.assert_allclose(read_given_probe(tmp_path / "s" / "big.exr", 16, 32), resample(sky, 16, 32),
+                               rtol=1e-5)

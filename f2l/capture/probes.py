@@ -22,6 +22,16 @@ an up-looking fisheye, is 0 in the probe and never invented). The sun's directio
 views (:func:`view_sun`), sub-texel. ``WORK/probes.parquet`` (schema ``probes``) has one row per
 bracket and per session probe, a ``skipped`` row saying what a session without a probe lacks, and
 the already-merged probes (role ``probe``) with their path.
+
+Hostile input never gives an "ok" probe and never loses the batch. A probe that is black, sees
+less than a quarter of the sky or is not finite (:func:`f2l.lighting.plausibility.probe_problem`
+on the radiance and the coverage mask), or a given probe that is unreadable, no lat-long or fails
+the same check, is an ``error`` row naming its session and file (no probe file is written for
+it). A view whose lens or orientation is described but unusable (a NaN angle, an implausible
+focal length) is an ``error`` row; one with no lens description stays ``unplaced``. A NaN or an
+infinity in a row's numbers makes that row an ``error`` naming the column, every row is checked
+against the schema before the table is built (:func:`checked_rows`), and an exception in one
+bracket or session becomes that row's ``error``: the other rows and probes.parquet are written.
 """
 
 from __future__ import annotations
@@ -476,9 +486,11 @@ def _restore_sun(row: dict, probe, grid, meta: dict) -> np.ndarray:
     return radiance
 
 
-def given_probe_on_grid(probe: np.ndarray, label: str, grid_height: int, grid_width: int) -> tuple[np.ndarray, str]:
+def given_probe_on_grid(probe: np.ndarray, label: str, grid_height: int, grid_width: int,
+                        source_hw: tuple[int, int] | None = None) -> tuple[np.ndarray, str]:
     """A given probe (role ``probe``, already read) on the ``grid_height`` x ``grid_width`` grid,
-    area-resampled when its size differs, and a note saying so; ValueError ``"<label>: reason"``
+    area-resampled when its size differs, and a note saying so (``source_hw``: the file's size
+    when the reader already area-averaged it to the grid); ValueError ``"<label>: reason"``
     when it cannot serve as a probe or ground truth (not a full-sphere lat-long, or
     :func:`f2l.lighting.plausibility.probe_problem`: black, NaN/inf, negative, too little sky)."""
     from f2l.lighting.plausibility import probe_problem
@@ -491,27 +503,27 @@ def given_probe_on_grid(probe: np.ndarray, label: str, grid_height: int, grid_wi
     if w != 2 * h:
         raise ValueError(f"{label}: a {h}x{w} probe is not a full-sphere lat-long (width = 2 x height)")
     problem = None if np.isfinite(probe).all() else "NaN or infinite values"
-    note = ""
+    sh, sw = source_hw if source_hw is not None else (h, w)
+    note = "" if (sh, sw) == (grid_height, grid_width) else f"resampled from {sh}x{sw} to {grid_height}x{grid_width}"
     if problem is None and (h, w) != (grid_height, grid_width):
         probe = resample(probe, grid_height, grid_width)
-        note = f"resampled from {h}x{w} to {grid_height}x{grid_width}"
     problem = problem or probe_problem(probe)
     if problem:
         raise ValueError(f"{label}: {problem}")
     return np.asarray(probe, np.float32), note
 
 
-def read_hdr_bounded(path: str | os.PathLike, max_height: int | None = None) -> np.ndarray:
-    """:func:`f2l.io.probe_io.read_hdr_image`, passing ``max_height`` (the rows the caller needs)
-    where the reader takes it, so that a huge file is decoded in bands or refused by the reader
-    rather than held whole."""
-    import inspect
+def read_given_probe(path: str | os.PathLike, grid_height: int, grid_width: int) -> np.ndarray:
+    """A given probe's pixels, in memory bounded by the grid: its size is read from the header
+    first (a file that is no full-sphere lat-long, W = 2H, is refused before any decoding), then
+    :func:`f2l.io.probe_io.read_hdr_image` with the grid as its target (an image over the decode
+    limit comes back area-averaged to the grid, decoded in bands). ValueError naming the file."""
+    from f2l.io.probe_io import hdr_image_size, read_hdr_image
 
-    from f2l.io.probe_io import read_hdr_image
-
-    if max_height is not None and "max_height" in inspect.signature(read_hdr_image).parameters:
-        return read_hdr_image(path, max_height=int(max_height))
-    return read_hdr_image(path)
+    h, w = hdr_image_size(path)
+    if w != 2 * h:
+        raise ValueError(f"{path}: a {h}x{w} probe is not a full-sphere lat-long (width = 2 x height)")
+    return read_hdr_image(path, (int(grid_height), int(grid_width)))
 
 
 def _given_row(root: Path, r: dict, grid_height: int, grid_width: int) -> dict:
@@ -520,15 +532,18 @@ def _given_row(root: Path, r: dict, grid_height: int, grid_width: int) -> dict:
     row = _row("given", r["path"], r["session"], r["status"], r["message"], path=str(root / r["path"]))
     if r["status"] != "ok":
         return row
+    from f2l.io.probe_io import hdr_image_size
+
     try:
-        _, note = given_probe_on_grid(read_hdr_bounded(root / r["path"], grid_height), r["path"],
-                                      grid_height, grid_width)
+        _, note = given_probe_on_grid(read_given_probe(root / r["path"], grid_height, grid_width), r["path"],
+                                      grid_height, grid_width, hdr_image_size(root / r["path"]))
+        row["message"] = "; ".join(m for m in (row["message"], note) if m)
     except (ValueError, ArithmeticError) as exc:
         reason = str(exc).replace(str(root).rstrip("/") + "/", "")
         row.update(status="error", message=f"session {r['session']}: given probe refused: {reason}")
-    except MemoryError:
-        row.update(status="error", message=f"session {r['session']}: given probe {r['path']}: "
-                                           f"too large to read in the memory available")
+    except Exception as exc:  # noqa: BLE001 - memory, a library that cannot load: this row, not the batch
+        row.update(status="error", message=f"session {r['session']}: given probe {r['path']} not read: "
+                                           f"{type(exc).__name__}: {exc}")
     return row
 
 

@@ -5,7 +5,8 @@ its own).
 Exit codes (one build collects a status per input, writes what it could, atomically, and the
 exit code says whether anything failed): 0 built or up to date and no input failed; 1 the
 dataset holds no record (the card says why); 2 bad arguments, pipeline file, capture folder or
-face model (nothing written); 3 another build holds the lock; 4 built, but some inputs failed
+face model (nothing written), or a machine that cannot run the build (out of memory, a library
+that cannot be loaded; finished cache entries are kept); 3 another build holds the lock; 4 built, but some inputs failed
 (status ``error``: an unreadable file, a bracket that could not be merged or placed, a probe
 refused as black, uncovered or not finite): each is printed with its session or file and the
 reason, listed under ``failed`` in ``--json`` and in the card's ``left_out``.
@@ -34,7 +35,7 @@ def build_dataset_cmd(
 ) -> None:
     """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out.
 
-    One bad input never stops the build: it is left out with its reason (a probe that is unreadable, black, sees too little sky or holds NaN is never ground truth). Exit code: 0 built (or up to date) and nothing failed; 1 no record built; 2 bad arguments, pipeline, capture folder or face model; 3 another build holds the lock; 4 built, but some inputs failed (printed with file and reason; `failed` in --json)."""
+    One bad input never stops the build: it is left out with its reason (a probe that is unreadable, black, sees too little sky or holds NaN is never ground truth). Exit code: 0 built (or up to date) and nothing failed; 1 no record built; 2 bad arguments, pipeline, capture folder or face model, or out of memory; 3 another build holds the lock; 4 built, but some inputs failed (printed with file and reason; `failed` in --json)."""
     from f2l.face.landmarker import LandmarkerError
     from f2l.pipeline.build import build_dataset
     from f2l.pipeline.cache import LockHeld
@@ -51,6 +52,10 @@ def build_dataset_cmd(
         raise typer.Exit(code=3)
     except (ValueError, FileNotFoundError, LandmarkerError, FaceMeshError, ExecutorUnavailable) as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
+        raise typer.Exit(code=2)
+    except (MemoryError, ImportError) as exc:  # the machine, not an input: nothing is cached for it
+        typer.echo(f"f2l: error: the build cannot run here ({type(exc).__name__}: {exc or 'out of memory'}); "
+                   f"what was finished is kept in {work} and a rerun resumes it", err=True)
         raise typer.Exit(code=2)
     if json_out:
         data = summary.to_json()

@@ -109,13 +109,18 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
     return {"key": key, "row": result["row"], "entry": str(entry)}
 
 
-def read_probe_file(path: Path, max_height: int | None = None) -> np.ndarray:
+def read_probe_file(path: Path, grid_hw: tuple[int, int] | None = None) -> np.ndarray:
     """(H, W, 3) float32 of an EXR, Radiance ``.hdr``, PFM or float TIFF (ValueError naming the
-    file). ``max_height``: the rows the caller needs (the grid's), passed to the reader where it
-    takes it (a bounded, banded decode of a huge file, or a refusal naming it)."""
-    from f2l.capture.probes import read_hdr_bounded
+    file). ``grid_hw``: the grid the probe goes to; then a file that is no lat-long is refused from
+    its header, and one over the readers' decode limit comes back area-averaged to the grid,
+    decoded in bands (:func:`f2l.capture.probes.read_given_probe`): memory bounded by the grid."""
+    from f2l.io.probe_io import read_hdr_image
 
-    return read_hdr_bounded(path, max_height)
+    if grid_hw is None:
+        return read_hdr_image(path)
+    from f2l.capture.probes import read_given_probe
+
+    return read_given_probe(path, *grid_hw)
 
 
 def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int, int],
@@ -130,12 +135,14 @@ def given_probe(cache: Cache, root: Path, plan: SessionPlan, grid_hw: tuple[int,
     def produce(tmp: Path) -> dict:
         from f2l.capture.probes import given_probe_on_grid
         from f2l.io.exr import write_exr
+        from f2l.io.probe_io import hdr_image_size
 
         out = {"kind": "given", "name": row["path"], "session": plan.name, "status": "ok",
                "message": "", "path": None}
         try:
-            probe, out["message"] = given_probe_on_grid(read_probe_file(root / row["path"], grid_hw[0]),
-                                                        row["path"], *grid_hw)
+            path = root / row["path"]
+            probe, out["message"] = given_probe_on_grid(read_probe_file(path, grid_hw), row["path"], *grid_hw,
+                                                        source_hw=hdr_image_size(path))
             write_exr(tmp / "probe.exr", probe, metadata={"f2l_session": plan.name})
             out["path"] = "probe.exr"
         except (ValueError, ArithmeticError) as exc:  # not MemoryError: that is no property of the file
