@@ -3,7 +3,8 @@
 For each face the landmarker finds (:mod:`f2l.face.landmarker`, score order):
 
 1. reject faces that are too small (narrower than ``min_face_px``: :func:`face_width_px`), cut off by the frame
-   (> ``max_outside_fraction`` of the landmarks outside), or in profile (|yaw| > ``max_yaw_deg``);
+   (> ``max_outside_fraction`` of the landmarks outside), blurred (blur index of its central box
+   above ``max_blur_index``: :mod:`f2l.face.quality`), or in profile (|yaw| > ``max_yaw_deg``);
 2. lift the landmarks to a metric mesh (:func:`f2l.face.geometry.reconstruct_vertices`),
    Loop-subdivide it, and rasterise the working view (a square crop around the face resampled
    to ``resolution`` px) from the photo's camera: points, normals;
@@ -57,6 +58,7 @@ class FitOptions:
     max_outside_fraction: float = 0.02
     min_mask_pixels: int = 200
     max_clipped_fraction: float = 0.5  # refuse a face whose skin is more clipped than this
+    max_blur_index: float = 0.55  # refuse a blurrier face (f2l.face.quality.MAX_BLUR_INDEX); 1 keeps all
     max_faces: int = 0  # the first so many detections (score order); 0: every face
     body_proxy: bool = False  # a neck-and-shoulders occluder posed with the head (f2l.face.body)
     # the upper forehead's hairline band (f2l.face.regions): "colour" keeps its pixels that have
@@ -73,7 +75,8 @@ class FitOptions:
                 "transport_pixels": self.transport_pixels, "min_face_px": self.min_face_px,
                 "max_yaw_deg": self.max_yaw_deg,
                 "max_outside_fraction": self.max_outside_fraction, "body_proxy": self.body_proxy,
-                "hairline": self.hairline, "max_clipped_fraction": self.max_clipped_fraction}
+                "hairline": self.hairline, "max_clipped_fraction": self.max_clipped_fraction,
+                "max_blur_index": self.max_blur_index}
 
 
 @dataclass
@@ -96,6 +99,7 @@ class FaceFit:
     detection_score: float
     presence: float
     timings: dict
+    blur_index: float | None = None  # f2l.face.quality (Crete et al. 2007): 0 sharp ... 1 blurred
 
     @property
     def num_pixels(self) -> int:
@@ -214,6 +218,7 @@ def sky_visibility(bits: np.ndarray, grid: LatLongGrid) -> np.ndarray:
 def fit_face(photo, landmarks, face_index: int, options: FitOptions,
              detection_score: float = 1.0, presence: float = 1.0) -> FaceFit | Rejected:
     """Fit one face of ``photo`` (:class:`f2l.face.photo.Photo`) from its (478, 3) landmarks."""
+    from f2l.face.quality import face_blur_index
     from f2l.face.regions import skin_regions
     from f2l.synth.facemesh import canonical_face_mesh
     from f2l.transport.visibility import compute_visibility, front_mask, packed_width
@@ -233,13 +238,20 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     if outside > options.max_outside_fraction:
         return Rejected(face_index, "cut_off", f"face {face_index}: {outside:.0%} of its "
                         f"landmarks lie outside the frame")
+    view = geometry.working_view(lm, options.resolution, options.margin)
+    rows, c0, c1 = _photo_window(view, hw)
+    if hasattr(photo, "ensure_window"):  # a streamed photo: the fit's window, read once, holds the blur's box
+        photo.ensure_window((rows[0], rows[-1] + 1, c0, c1))
+    blur = face_blur_index(photo, mesh_xy, size_px)
+    if blur is not None and blur > options.max_blur_index:
+        return Rejected(face_index, "blurred", f"face {face_index}: blur index {blur:.2f} > "
+                        f"{options.max_blur_index:.2f} (out of focus or moving): too little detail to fit")
     canon, tri, _ = canonical_face_mesh()
     head = geometry.reconstruct_vertices(lm, photo.focal_px, hw, canon, options.depth_source)
     if abs(head.yaw_deg) > options.max_yaw_deg:
         return Rejected(face_index, "profile", f"face {face_index}: head yaw {head.yaw_deg:+.0f}°"
                         f" exceeds ±{options.max_yaw_deg:.0f}° (profile view)")
     v, f, vn = geometry.subdivided_mesh(head.vertices, tri, options.subdivisions)
-    view = geometry.working_view(lm, options.resolution, options.margin)
     r = view.resolution
     rc_all = np.stack(np.divmod(np.arange(r * r), r), axis=1)
     rays = geometry.rays_for(view.photo_xy(rc_all), photo.focal_px, hw)
@@ -250,7 +262,6 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     # only the photo's rows and columns that the footprints touch are read (a large photo is
     # never converted whole: Photo.rows; a streamed one reads just this window at full
     # resolution: StreamedPhoto.rows)
-    rows, c0, c1 = _photo_window(view, hw)
     part = photo.rows(rows, slice(c0, c1))
     local_y = np.searchsorted(rows, np.clip(np.floor(ys - 0.5), 0, hw[0] - 1).astype(np.int64))
     ys_l = ys - rows[local_y] + local_y  # footprints in the (rows x [c0, c1)) sub-image
@@ -303,6 +314,7 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
         visibility_bits=bits, traced=traced, crop_display=crop, detection_score=float(detection_score),
         presence=float(presence),
         timings={"geometry_s": round(t1 - t0, 4), "transport_s": round(t2 - t1, 4)},
+        blur_index=None if blur is None else round(float(blur), 4),
     )
 
 
@@ -412,6 +424,7 @@ def face_record(fit: FaceFit, photo, face_id: str, options: FitOptions, *,
         "greyscale": is_greyscale(fit.observed_rgb),
         "face_box_px": [round(v, 2) for v in landmark_box(fit.landmarks)],
         "face_width_px": round(face_width_px(fit.landmarks), 2),
+        "blur_index": fit.blur_index,
     }
     r = fit.view.resolution
     return FaceRecord(

@@ -356,9 +356,25 @@ class StreamedPhoto:
         if len(index) == 0 or len(col_index) == 0:
             return _code_planes(np.zeros((len(index), len(col_index), 3), np.uint8))
         box = (int(index.min()), int(index.max()) + 1, int(col_index.min()), int(col_index.max()) + 1)
-        if box not in self._windows:
+        held = self._holding(box)
+        if held is None:
             self.prefetch([box])
-        return _code_planes(self._windows[box][index - box[0]][:, col_index - box[2]])
+            held = box
+        return _code_planes(self._windows[held][index - held[0]][:, col_index - held[2]])
+
+    def _holding(self, box) -> tuple | None:
+        """The key of a window read before that contains ``box`` (r0, r1, c0, c1), or None."""
+        r0, r1, c0, c1 = box
+        for key in self._windows:
+            if key[0] <= r0 and r1 <= key[1] and key[2] <= c0 and c1 <= key[3]:
+                return key
+        return None
+
+    def ensure_window(self, box) -> None:
+        """Read the window ``box`` unless a window read before contains it (the faces of a photo
+        are prefetched in one pass; a single face's window is read here, once)."""
+        if self._holding(tuple(int(v) for v in box)) is None:
+            self.prefetch([box])
 
     def prefetch(self, boxes) -> None:
         """Read the full-resolution windows ``(r0, r1, c0, c1)`` (oriented rows and columns) in one

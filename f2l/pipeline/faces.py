@@ -28,10 +28,10 @@ from f2l.pipeline.cache import Cache, stage_key
 from f2l.pipeline.plan import relative_message
 
 CALIBRATE_VERSION = 1
-FIT_VERSION = 4  # 2: large photos detected on a reduced copy, fitted from full-resolution windows;
+FIT_VERSION = 5  # 2: large photos detected on a reduced copy, fitted from full-resolution windows;
 # 3: clipped skin pixels get traced visibility (the estimator reads them as censored observations);
 # 4: faces at every scale (BlazeFace full range over a pyramid of windows), every face of a photo,
-# the face width along the eye line, a whole-photo overlay
+# the face width along the eye line, a whole-photo overlay; 5: blurred faces refused (blur index)
 
 
 def _rounded(stats: dict) -> dict:
