@@ -6,6 +6,33 @@ Conventions (directions, probes, units) are documented in ``docs/conventions.md`
 
 __version__ = "0.1.0"
 
+def _fit_an_address_space_limit() -> None:
+    """Under an address-space limit (``ulimit -v``), reserve address space only for what is used.
+
+    Two allocators reserve far more than they use: Arrow's default (mimalloc) about 1.3 GB at the
+    first Parquet read, whatever the data, and glibc's malloc 64 MB per thread arena (up to 8 per
+    core). Under ``ulimit -v 2097152`` either alone fails a one-record build. So, only when a limit
+    is set: Arrow gets the system allocator (read when pyarrow loads, hence here, before any f2l
+    module imports it) and glibc at most two arenas (mallopt M_ARENA_MAX). A user's own
+    ``ARROW_DEFAULT_MEMORY_POOL`` or ``MALLOC_ARENA_MAX`` wins."""
+    import os
+    import resource
+    import sys
+
+    if resource.getrlimit(resource.RLIMIT_AS)[0] == resource.RLIM_INFINITY:
+        return
+    os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
+    if sys.platform.startswith("linux") and "MALLOC_ARENA_MAX" not in os.environ:
+        import ctypes
+
+        try:
+            ctypes.CDLL(None).mallopt(-8, 2)  # M_ARENA_MAX = -8 in glibc's malloc.h
+        except (OSError, AttributeError):  # not glibc
+            pass
+
+
+_fit_an_address_space_limit()
+
 
 def _at_exit() -> None:
     from f2l.io.probe_io import release_openimageio_references

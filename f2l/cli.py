@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 
 from f2l import __version__
-from f2l.cli_support import fail as _fail, parse_grid as _grid  # shared with the stages' cli.py
+from f2l.cli_support import exit_for, fail as _fail, parse_grid as _grid  # shared with the stages' cli.py
 
 app = typer.Typer(
     name="f2l",
@@ -159,7 +159,10 @@ def estimate(
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
-    faces already estimated with the same model, version and settings."""
+    faces already estimated with the same model, version and settings.
+
+    A record that cannot be read or estimated is a row with its status and reason; the others are
+    written. Exit code 4 when some failed, 1 when none succeeded."""
     from f2l.pipeline.photos import fit_photos, is_photo_input
 
     missing = [str(s) for s in shards if not Path(s).exists()]
@@ -200,8 +203,8 @@ def estimate(
                              "not_ok": [{k: r[k] for k in ("source_path", "status", "message")}
                                         for r in fitted["photos"] if r["status"] != "ok"]}
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if summary["ok"] == 0 and summary["total"] > 0 and not summary["skipped_done"]:
-        raise typer.Exit(code=1)
+    photo_errors = 0 if fitted is None else sum(r["status"] == "error" for r in fitted["photos"])
+    exit_for(summary["failed"] + photo_errors, summary["ok"] + summary["skipped_done"])
 
 
 @app.command()
@@ -321,7 +324,7 @@ def fit_probe_cmd(
 
     A probe that cannot be fitted (unreadable, malformed side file, black, implausible) is a row
     with status "error" and its reason; the others are fitted and the table is written. Exit code
-    1 when any probe failed."""
+    4 when some probes failed, 1 when every probe failed."""
     from f2l.estimate.prior_build import write_fit_report
     from f2l.estimate.probe_fit import fit_probe_files, list_probe_files
 
@@ -340,8 +343,7 @@ def fit_probe_cmd(
         typer.echo(json.dumps(summary))
     else:
         typer.echo(summary["markdown"])
-    if summary["errors"]:
-        raise typer.Exit(code=1)
+    exit_for(summary["errors"], len(records) - summary["errors"])
 
 
 @app.command("sky-corpus")

@@ -20,3 +20,26 @@ def fail(message: str, code: int = 2) -> None:
     """Print ``f2l: error: MESSAGE`` on stderr and exit with ``code``."""
     typer.echo(f"f2l: error: {message}", err=True)
     raise typer.Exit(code=code)
+
+
+EXIT_NOTHING_DONE = 1
+"""Some inputs failed and none succeeded (the tables and statuses are written all the same)."""
+EXIT_USAGE = 2
+"""A usage error, a missing input, or a machine the command cannot run on."""
+EXIT_LOCKED = 3
+"""``build-dataset``: another build holds the work folder's lock."""
+EXIT_PARTIAL = 4
+"""Some inputs failed, the others succeeded: everything that could be done is written."""
+
+
+def exit_for(failed: int, succeeded: int) -> None:
+    """The batch commands' exit code (README, "Reliability"): 0 when nothing failed,
+    :data:`EXIT_PARTIAL` when some inputs failed and others succeeded, :data:`EXIT_NOTHING_DONE`
+    when inputs failed and none succeeded. A refusal for what an input shows (no face, a face too
+    small, a probe without a sun) is a result, not a failure; an input that cannot be read or
+    holds invalid values is a failure."""
+    if failed and not succeeded:
+        raise typer.Exit(code=EXIT_NOTHING_DONE)
+    if failed:
+        raise typer.Exit(code=EXIT_PARTIAL)
+

@@ -300,7 +300,7 @@ def test_fit_probe_folder_of_every_format_and_every_failure(tmp_path):
     (folder / "notes.txt").write_text("not a probe")
     proc = subprocess.run([F2L, "fit-probe", str(folder), "-m", "sh9", "--grid", "16x32", "--out", str(out), "--json"],
                           capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert proc.returncode == 4, proc.stderr[-2000:]  # 4: some probes failed, the rest fitted
     assert "Traceback" not in proc.stderr
     summary = json.loads(proc.stdout)  # nothing native on stdout
     assert summary["total"] == 7 and summary["ok"] == 3 and summary["errors"] == 4

@@ -201,7 +201,7 @@ def test_batch_goes_on_past_a_refused_photo(tmp_path, astronaut_png):
     env = dict(os.environ, F2L_MAX_PHOTO_PIXELS="10000000")
     proc = subprocess.run([sys.executable, "-m", "f2l.cli", "fit-faces", str(photos), "--out", str(tmp_path / "out"),
                            "--json"], capture_output=True, text=True, env=env)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.returncode == 4, proc.stderr[-2000:]  # 4: one photo refused, the rest written
     rows = {Path(r["source_path"]).name: r for r in pq.read_table(tmp_path / "out" / "status").to_pylist()}
     assert rows["huge.png"]["status"] == "error"
     assert rows["huge.png"]["message"] == (f"{photos / 'huge.png'}: image is 5000x4000 = 20 MP, above the 10 MP "

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from f2l.cli_support import exit_for
+
 
 def ingest_cmd(
     root: Path = typer.Argument(..., help="Capture tree: one folder per session (site), or a flat folder."),
@@ -17,7 +19,10 @@ def ingest_cmd(
     allow_outside: bool = typer.Option(False, "--allow-outside", help="Let a session.toml name files (a flat field) outside its session folder: absolute paths, '..', symlinks out. Refused by default."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental)."""
+    """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental).
+
+    Every file is a row; one that cannot be read, or whose session.toml names something invalid,
+    is a row with status "error" and the reason. Exit code 4 when some files failed, 1 when all did."""
     from f2l.capture.manifest import run_ingest
 
     try:
@@ -29,8 +34,10 @@ def ingest_cmd(
         raise typer.Exit(code=2)
     if json_out:
         typer.echo(json.dumps(summary.to_json()))
-        return
-    _print_summary(summary)
+    else:
+        _print_summary(summary)
+    errors = summary.by_status.get("error", 0)
+    exit_for(errors, summary.files - errors)
 
 
 def _print_summary(summary) -> None:
@@ -90,7 +97,10 @@ def make_probes_cmd(
     full_probe: bool = typer.Option(False, "--full-probe", help="Also write probes/<session>.full.exr at the views' own resolution (up to 512 rows; slow: ~13 s per view): a ground truth finer than the probe grid."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe."""
+    """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe.
+
+    A bracket, view or probe that fails (or a probe refused as black or uncovered) is a row with
+    status "error"; the others are written. Exit code 4 when some failed, 1 when all did."""
     from f2l.capture.probes import COLOUR_SPACES, make_probes
 
     if colour not in COLOUR_SPACES:
@@ -106,6 +116,7 @@ def make_probes_cmd(
     out = summary.to_json()
     if json_out:
         typer.echo(json.dumps(out))
+        exit_for(summary.errors, sum(r["status"] != "error" for r in summary.rows))
         return
     typer.echo(f"{summary.brackets} brackets -> {summary.views} placed views -> {summary.probes} "
                f"probes in {summary.seconds:.1f} s ({work}/probes.parquet)")
@@ -113,8 +124,7 @@ def make_probes_cmd(
         extra = "" if r["coverage_fraction"] is None else (
             f" coverage {r['coverage_fraction']:.0%}, saturated {r['saturated_fraction']:.2%}")
         typer.echo(f"  {r['kind']:5} {r['name']}: {r['status']}{extra} {r['message']}".rstrip())
-    if summary.errors and summary.views == 0:
-        raise typer.Exit(code=1)
+    exit_for(summary.errors, sum(r["status"] != "error" for r in summary.rows))
 
 
 def bench_capture_cmd(

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from f2l.cli_support import exit_for
+
 
 def calibrate_cmd(
     chart_photos: list[Path] = typer.Argument(..., help="Photos of a ColorChecker Classic (JPEG/PNG/TIFF or camera RAW) or folders of them."),
@@ -35,3 +37,4 @@ def calibrate_cmd(
     typer.echo(json.dumps(summary) if json_out else format_summary(summary))
     if all(r.status in ("no_chart", "error") for r in results):
         raise typer.Exit(code=1)
+    exit_for(sum(r.status == "error" for r in results), sum(r.status != "error" for r in results))

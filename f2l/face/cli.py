@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli_support import fail, parse_grid
+from f2l.cli_support import exit_for, fail, parse_grid
 
 
 def fit_faces_cmd(
@@ -28,7 +28,9 @@ def fit_faces_cmd(
     min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face to find and fit: its width in photo pixels (cheek to cheek along the eye line). Detection time grows as its inverse square; narrower faces found on the way are refused as too_small."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Detect every face of each photo (any size from --min-face-px, anywhere, any number), fit a 3D face mesh, mask skin and compute transport into face-record shards."""
+    """Detect every face of each photo (any size from --min-face-px, anywhere, any number), fit a 3D face mesh, mask skin and compute transport into face-record shards.
+
+    Every photo gets a status row (ok, rejected with each face's reason, no_face, error). Exit code 4 when some photos could not be read, 1 when none could."""
     from f2l.face.fit import FitOptions
     from f2l.face.landmarker import LandmarkerError
     from f2l.face.run import fit_faces
@@ -59,8 +61,7 @@ def fit_faces_cmd(
     except (LandmarkerError, FaceMeshError) as exc:
         fail(str(exc))
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
-    if summary["photos"] and summary["status"]["error"] == summary["photos"]:
-        raise typer.Exit(code=1)
+    exit_for(summary["status"]["error"], summary["photos"] - summary["status"]["error"])
 
 
 def compare_geometry_cmd(
