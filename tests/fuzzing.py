@@ -114,6 +114,7 @@ class Target:
     read: Callable[[Path], object]
     allowed: tuple[type[BaseException], ...]
     text: str | None = None  # "toml" / "json" for structure-aware mutation
+    share: float = 1.0  # fraction of --cases run (commands cost more per case than readers)
 
 
 class Unusable(AssertionError):
@@ -292,6 +293,120 @@ def _read_shard(path: Path):
         _finite(rec.normals, "record normals")
 
 
+# -- commands: the same mutations through the CLI, in this process ------------------------------------
+COMMAND_EXIT_CODES = (0, 1, 4)
+"""What a batch command may exit with on bad input (f2l.cli_support.exit_for): never 2 (usage)
+for an input that is merely bad, never a traceback."""
+
+
+def _invoke(args: list) -> dict:
+    """Run ``f2l ARGS --json`` in this process; a traceback, another exit code or output that is
+    not one JSON line is :class:`Unusable`. Returns the JSON summary."""
+    from typer.testing import CliRunner
+
+    from f2l.cli import app
+
+    res = CliRunner().invoke(app, [str(a) for a in args] + ["--json"])
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        tb = "".join(traceback.format_exception(res.exception)[-2:])
+        raise Unusable(f"f2l {args[0]} raised {type(res.exception).__name__}: {tb[:400]}")
+    if res.exit_code not in COMMAND_EXIT_CODES:
+        raise Unusable(f"f2l {args[0]} exited {res.exit_code}: {res.output[-400:]}")
+    try:
+        return json.loads(res.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        raise Unusable(f"f2l {args[0]} --json printed no JSON summary: {res.stdout[-300:]!r}") from None
+
+
+def _make_tree(folder: Path) -> Path:
+    """A capture tree: a sky bracket (3 DNG frames) with the session.toml to be mutated, and a
+    second, good session that must come through whatever the first holds."""
+    from f2l.capture.dng import write_bracket
+
+    for session in ("site", "good"):
+        write_bracket(folder / "tree" / session / "sky", np.full((24, 32, 3), 0.3, np.float32),
+                      [1 / 400, 1 / 100, 1 / 25], seed=2)
+        (folder / "tree" / session / "session.toml").write_bytes(
+            b'[lens]\nprojection = "equidistant"\nfov_deg = 180.0\n[[shots]]\nfiles = "sky/*"\npitch_deg = 90.0\n')
+    return folder / "tree" / "site" / "session.toml"
+
+
+def _ingest_and_make_probes(path: Path):
+    import pyarrow.parquet as pq
+
+    root, work = path.parents[1], path.parents[2] / "work"
+    _invoke(["ingest", root, "--work", work, "--no-detect-roles"])
+    _invoke(["make-probes", root, "--work", work, "--probe-height", "8"])
+    rows = pq.read_table(work / "probes.parquet").to_pylist()
+    good = [r for r in rows if r["session"] == "good"]
+    if not good or any(r["status"] == "error" for r in good):
+        raise Unusable(f"the good session was lost: {[(r['kind'], r['status'], r['message']) for r in good]}")
+
+
+def _make_probe_folder(folder: Path) -> Path:
+    from f2l.io.exr import write_exr
+
+    probes = folder / "probes"
+    probes.mkdir(exist_ok=True)
+    write_exr(probes / "good.exr", _sky())
+    write_exr(probes / "seed.exr", _sky())
+    (probes / "seed.json").write_bytes(SIDECAR)
+    return probes / "seed.exr"
+
+
+def _fit_probe(path: Path):
+    summary = _invoke(["fit-probe", path.parent, "-m", "sh9", "--grid", "16x32", "--out", path.parents[1] / "fitted"])
+    if summary.get("ok", 0) < 1:
+        raise Unusable(f"fit-probe lost the good probe: {str(summary)[:300]}")
+
+
+def _make_sidecar_folder(folder: Path) -> Path:
+    return _make_probe_folder(folder).with_suffix(".json")
+
+
+def _make_photo_folder(folder: Path) -> Path:
+    import skimage.data
+    from PIL import Image
+
+    photos = folder / "photos"
+    photos.mkdir(exist_ok=True)
+    face = Image.fromarray(skimage.data.astronaut()[:320, 64:384]).resize((200, 200))
+    face.save(photos / "good.png")
+    face.save(photos / "seed.jpg", quality=90)
+    return photos / "seed.jpg"
+
+
+def _fit_faces(path: Path):
+    import pyarrow.parquet as pq
+
+    out = path.parents[1] / "fitted"
+    _invoke(["fit-faces", path.parent, "--out", out, "--grid", "8x16", "--resolution", "48", "--no-overlays"])
+    rows = {r["source_path"].rsplit("/", 1)[-1]: r for r in pq.read_table(out / "status" / "fit_faces.parquet").to_pylist()}
+    if rows.get("good.png", {}).get("status") != "ok":
+        raise Unusable(f"fit-faces lost the good photo: {rows.get('good.png')}")
+
+
+def _make_shard_pair(folder: Path) -> Path:
+    good = _make_shard(folder / "a")
+    bad = _make_shard(folder / "b")
+    target = folder / "shards" / "seed.parquet"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    good.replace(folder / "shards" / "good.parquet")
+    bad.replace(target)
+    import pyarrow.parquet as pq  # the second record gets its own face_id
+
+    table = pq.read_table(target)
+    pq.write_table(table.set_column(table.column_names.index("face_id"), "face_id",
+                                    [["fuzz-1"] * table.num_rows]), target)
+    return target
+
+
+def _estimate(path: Path):
+    summary = _invoke(["estimate", path.parent, "-m", "sh9", "--out", path.parents[1] / "est", "--workers", "1"])
+    if summary.get("ok", 0) + summary.get("skipped_done", 0) < 1:
+        raise Unusable(f"estimate lost the good record: {str(summary)[:300]}")
+
+
 def targets() -> dict[str, Target]:
     from f2l.capture.raw_meta import RawError
     from f2l.face.photo_core import PhotoError
@@ -311,6 +426,11 @@ def targets() -> dict[str, Target]:
         Target("pipeline-toml", _make_pipeline, _read_pipeline, (PipelineError,), text="toml"),
         Target("json", _make_json, _read_json, (InputError,), text="json"),
         Target("shard", _make_shard, _read_shard, ()),
+        Target("cmd-ingest", _make_tree, _ingest_and_make_probes, (), text="toml", share=0.1),
+        Target("cmd-fit-probe", _make_probe_folder, _fit_probe, (), share=0.1),
+        Target("cmd-fit-probe-side", _make_sidecar_folder, _fit_probe, (), text="json", share=0.1),
+        Target("cmd-fit-faces", _make_photo_folder, _fit_faces, (), share=0.05),
+        Target("cmd-estimate", _make_shard_pair, _estimate, (), share=0.1),
     ]}
 
 
@@ -345,7 +465,7 @@ def run_target(target: Target, cases: int, seed: int, work: Path, first: int = 0
     if error is not None or printed:
         return [{"target": target.name, "case": "seed", "mutation": "none",
                  "error": f"the valid seed file fails: {error!r} {printed[:200]!r}"}]
-    for case in range(first, first + cases):
+    for case in range(first, first + max(1, round(cases * target.share))):
         rng = np.random.default_rng([seed, case, sum(target.name.encode())])
         data, what = original, []
         for _ in range(int(rng.integers(1, 3))):
@@ -390,10 +510,11 @@ def main(argv: list[str] | None = None) -> int:
         for name in names:
             t0 = time.perf_counter()
             failures = run_target(chosen[name], args.cases, args.seed, Path(tmp), args.first)
-            summary["targets"][name] = {"cases": args.cases, "failures": len(failures),
+            n = max(1, round(args.cases * chosen[name].share))
+            summary["targets"][name] = {"cases": n, "failures": len(failures),
                                         "seconds": round(time.perf_counter() - t0, 2)}
             summary["failures"].extend(failures)
-            print(f"{name:14s} {args.cases:5d} cases  {len(failures):3d} failures  "
+            print(f"{name:18s} {n:5d} cases  {len(failures):3d} failures  "
                   f"{time.perf_counter() - t0:6.1f} s", file=sys.stderr, flush=True)
     for f in summary["failures"][:50]:
         print(f"FAIL {f['target']} case {f['case']} ({f['mutation']}): {f['error']}", file=sys.stderr)
