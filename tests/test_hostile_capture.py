@@ -236,3 +236,103 @@ def test_non_utf8_file_name_is_an_error_row(tree):
                                    "--out", str(tree["base"] / "out"), "--json"])
     assert res.exit_code != 2 and "Traceback" not in res.output
     assert "\\\\xff\\\\xfe.png" in res.stdout  # JSON-escaped backslashes
+
+
+# -- capture files that are symbolic links out of the tree ----------------------------------------
+def _png(path: Path, seed: int = 0) -> None:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.random.default_rng(seed).integers(0, 255, (32, 32, 3), np.uint8)).save(path)
+
+
+@pytest.fixture
+def linked(tmp_path):
+    """A tree whose ``s/faces/out.png`` links out of it, ``s/faces/in.png`` to a file inside it,
+    ``s/faces/loop_a.png`` and ``loop_b.png`` to each other, ``s/elsewhere`` to a folder out of it
+    and ``s/again`` to its own session folder (a loop)."""
+    root, outside = tmp_path / "raw", tmp_path / "outside"
+    _session(root, "good", SESSION_TOML)
+    _png(outside / "out.png", 1)
+    _png(outside / "folder" / "hidden.png", 2)
+    _png(root / "shared" / "real.png", 3)
+    faces = root / "s" / "faces"
+    faces.mkdir(parents=True)
+    os.symlink(outside / "out.png", faces / "out.png")
+    os.symlink(root / "shared" / "real.png", faces / "in.png")
+    os.symlink(faces / "loop_b.png", faces / "loop_a.png")
+    os.symlink(faces / "loop_a.png", faces / "loop_b.png")
+    os.symlink(outside / "folder", root / "s" / "elsewhere")
+    os.symlink(root / "s", root / "s" / "again")
+    return root, outside, tmp_path / "work"
+
+
+def test_symlink_out_of_the_tree_is_refused(linked):
+    root, outside, work = linked
+    res = _ingest(root, work, "--json")
+    assert res.exit_code == 4, res.output  # some files failed, the rest ingested
+    rows = _rows(work)
+    out = rows["s/faces/out.png"]
+    assert out["status"] == "error" and out["sha256"] == "", out
+    assert "symlink points outside the capture tree" in out["message"]
+    assert str(root / "s" / "faces" / "out.png") in out["message"] and str(outside / "out.png") in out["message"]
+    assert rows["s/faces/in.png"]["status"] == "ok" and rows["s/faces/in.png"]["sha256"]  # a link within the tree
+    for name in ("loop_a.png", "loop_b.png"):  # a link loop cannot be stat'ed: an error row, no hang
+        assert rows[f"s/faces/{name}"]["status"] == "error" and "cannot be read" in rows[f"s/faces/{name}"]["message"]
+    # folder links are never walked: nothing under s/elsewhere (out) or s/again (a loop)
+    assert not [p for p in rows if p.startswith(("s/elsewhere/", "s/again/"))], sorted(rows)
+    warning = next(w for w in json.loads(res.stdout)["warnings"] if "s/elsewhere" in w)
+    assert str(outside / "folder") in warning and "not scanned" in warning
+    assert not [w for w in json.loads(res.stdout)["warnings"] if "s/again" in w]  # inside: no warning
+    _good = [r for p, r in rows.items() if p.startswith("good/")]
+    assert len(_good) == 3 and all(r["status"] == "ok" and r["bracket_id"] for r in _good)
+
+
+def test_allow_outside_reads_the_link_and_shares_no_row(linked):
+    root, outside, work = linked
+    _ingest(root, work, "--json")  # refused first: the row must not be reused as it is
+    res = _ingest(root, work, "--json", "--allow-outside")
+    out = _rows(work)["s/faces/out.png"]
+    assert out["status"] == "ok" and out["sha256"] and out["width"] == 32, out
+    assert json.loads(res.stdout)["by_status"]["error"] == 2  # the two loop links only
+    again = _ingest(root, work, "--json")  # and refused again without it
+    assert _rows(work)["s/faces/out.png"]["status"] == "error" and again.exit_code == 4
+
+
+def test_build_dataset_allow_outside(tmp_path):
+    """build-dataset refuses a session whose flat field is an absolute path (its frames are failed
+    inputs: exit 4, the other session built) and uses it with --allow-outside."""
+    import skimage.data
+    from PIL import Image
+
+    from tests.test_build_dataset import PIPELINE
+
+    root = tmp_path / "raw"
+    _flat(tmp_path / "outside" / "flat.exr")
+    _session(root, "good", SESSION_TOML)
+    _session(root, "abs", _falloff(str(tmp_path / "outside" / "flat.exr")))
+    face = Image.fromarray(skimage.data.astronaut()).crop((64, 0, 384, 320)).resize((256, 256), Image.Resampling.LANCZOS)
+    for s in ("good", "abs"):
+        (root / s / "faces").mkdir()
+        face.save(root / s / "faces" / f"{s}.png")
+    (tmp_path / "pipeline.toml").write_text(PIPELINE)
+
+    def build(*extra: str):
+        res = CliRunner().invoke(app, ["build-dataset", str(root), "--work", str(tmp_path / "work"), "--out",
+                                       str(tmp_path / "out"), "--pipeline", str(tmp_path / "pipeline.toml"),
+                                       "--json", *extra])
+        assert "Traceback" not in res.output
+        return res, json.loads(res.stdout), json.loads((tmp_path / "out" / "dataset_card.json").read_text())
+
+    res, summary, card = build()
+    assert res.exit_code == 4, res.output
+    refused = [f for f in summary["failed"] if f["path"].startswith("abs/sky/")]
+    assert len(refused) == 3 and all("absolute path" in f["reason"] and "--allow-outside" in f["reason"]
+                                     for f in refused), summary["failed"]
+    assert {s["name"]: s["probe"] is not None for s in card["sessions"]} == {"abs": False, "good": True}
+    assert card["pipeline"]["stages"][0]["allow_outside"] is False
+    res, summary, card = build("--allow-outside")
+    assert res.exit_code == 0, res.output
+    assert summary["failed"] == [] and summary["stages"]["merge"]["computed"] == 1  # only abs's bracket
+    assert {s["name"]: s["probe"] is not None for s in card["sessions"]} == {"abs": True, "good": True}
+    assert card["pipeline"]["stages"][0]["allow_outside"] is True

@@ -16,7 +16,7 @@ def ingest_cmd(
     session_gap_min: float = typer.Option(30.0, help="Flat folders: a gap longer than this (minutes) starts a new session."),
     bracket_gap_s: float = typer.Option(15.0, help="Frames further apart than this (s) are not one bracket."),
     detect_roles: bool = typer.Option(True, "--detect-roles/--no-detect-roles", help="Run the face/chart detectors on files no folder name or session.toml gives a role."),
-    allow_outside: bool = typer.Option(False, "--allow-outside", help="Let a session.toml name files (a flat field) outside its session folder: absolute paths, '..', symlinks out. Refused by default."),
+    allow_outside: bool = typer.Option(False, "--allow-outside", help="Let a session.toml name files (a flat field) outside its session folder (absolute paths, '..', symlinks out), and read capture files that are symlinks out of ROOT. Refused by default."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
     """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental).

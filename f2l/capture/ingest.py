@@ -50,7 +50,12 @@ What a row says about a file, and how it is decided:
     (``warnings`` in the summary, printed by the CLI): the frames it meant get no orientation;
   - a file whose name is not valid UTF-8 is an ``error`` row whose path is the name with the
     undecodable bytes escaped (``\\xff``); it is never opened (rename it to ingest it);
-  - a file that cannot be stat'ed (a dangling symlink) is an ``error`` row.
+  - a file that cannot be stat'ed (a dangling symlink, a symlink loop) is an ``error`` row;
+  - a capture file that is a symbolic link pointing outside the capture tree is an ``error`` row
+    naming the link and its target ("symlink points outside the capture tree"), never opened,
+    unless the user passes ``--allow-outside``; links within the tree are read as usual. A
+    symbolic link to a folder is never descended (:func:`scan`); one that points outside the
+    tree is a warning.
 
 Incremental: ``WORK/captures.parquet`` from an earlier run is read first; a file whose relative
 path, size and mtime (ns) match a row written by the same :data:`INGEST_VERSION` is not opened
@@ -122,16 +127,35 @@ def kind_of(path: Path) -> str | None:
     return None
 
 
-def scan(root: Path) -> list[Path]:
-    """Capture files under ``root`` (recursive, sorted, hidden files and folders skipped)."""
+def scan(root: Path, linked_out: list | None = None) -> list[Path]:
+    """Capture files under ``root`` (recursive, sorted, hidden files and folders skipped).
+
+    A symbolic link to a folder is never descended (a link out of the tree is not read, a link
+    loop is not walked); ``linked_out`` receives (link, resolved target) of each such link that
+    points outside ``root``, for a warning. A symbolic link to a file is listed like a file
+    (:func:`outside_target` says whether it leaves the tree)."""
     out = []
-    for dirpath, dirnames, filenames in os.walk(root):
+    base = os.path.realpath(root)
+    for dirpath, dirnames, filenames in os.walk(root):  # followlinks=False: folder links not walked
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+        if linked_out is not None:
+            for d in dirnames:
+                p = Path(dirpath) / d
+                target = outside_target(base, p) if os.path.islink(p) else None
+                if target is not None:
+                    linked_out.append((p, target))
         for name in sorted(filenames):
             p = Path(dirpath) / name
             if not name.startswith(".") and kind_of(p) is not None:
                 out.append(p)
     return out
+
+
+def outside_target(base: str, path: Path) -> str | None:
+    """The resolved target of ``path`` when it lies outside the folder whose real path is
+    ``base`` (a symbolic link out of the capture tree), else None."""
+    real = os.path.realpath(path)
+    return None if os.path.commonpath([base, real]) == base else real
 
 
 # -- metadata per kind ---------------------------------------------------------------------------

@@ -64,22 +64,34 @@ def _unusable_row(path: Path, rel: str, stat: os.stat_result | None, why: str) -
     return row
 
 
-def _scan_item(root: Path, path: Path, previous: dict) -> tuple:
+OUTSIDE_LINK = "symlink points outside the capture tree"
+
+
+def _scan_item(root: Path, path: Path, previous: dict, allow_outside: bool = False,
+               base: str | None = None) -> tuple:
     """(path, relative path as UTF-8, stat or None, reusable previous row or None, why the file is
-    not opened or None) of one scanned file."""
+    not opened or None) of one scanned file. ``base``: the capture root's real path. A symbolic
+    link out of the tree is not opened unless ``allow_outside``; a previous row of it is reused
+    only if that run read it (so a run with and one without ``allow_outside`` share no row)."""
     rel = path.relative_to(root).as_posix()
     shown = ing.shown_path(rel)
     why = None
     try:
         stat = path.stat()
-    except OSError as exc:  # a dangling symlink, a file removed while scanning
+    except OSError as exc:  # a dangling symlink, a symlink loop, a file removed while scanning
         stat, why = None, f"{ing.shown_path(path)}: cannot be read ({exc.strerror or exc})"
+    target = ing.outside_target(base or os.path.realpath(root), path) if why is None else None
+    if target is not None and not allow_outside:
+        why = (f"{ing.shown_path(path)}: {OUTSIDE_LINK} (to {ing.shown_path(target)}); the file is not read "
+               f"(--allow-outside allows it)")
     if not ing.is_utf8(rel):
         why = (f"{ing.shown_path(path)}: the file name is not valid UTF-8 ({ascii(os.fsencode(rel))}); "
                f"the file is not read: rename it to ingest it")
     if why is not None:
         return path, shown, stat, None, why
     old = previous.get(rel)
+    if target is not None and old is not None and not old["sha256"]:
+        old = None  # refused (or unreadable) before: read it now that it is allowed
     return path, rel, stat, old if _unchanged(old, stat) else None, None
 
 
@@ -101,7 +113,8 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     New or changed files are read by ``workers`` threads (default: the CPU count, at most 4): the
     SHA-256 and a LibRaw decode, the costly parts, release the GIL; each holds one file at a time.
     ``allow_outside``: files a session.toml names (a flat field) may lie outside the session
-    folder (absolute paths, ``..``, symlinks out); by default they are refused."""
+    folder (absolute paths, ``..``, symlinks out), and capture files that are symbolic links out
+    of the tree are read; by default both are refused (``error`` rows)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from f2l.io.tables import rows_to_table, write_table_atomic
@@ -114,7 +127,9 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     previous = _previous(table_path)
     summary = ing.IngestSummary(root=str(root), table=str(table_path))
     # (path, relative path, stat, previous row or None when it must be read, why it is not opened)
-    todo = [_scan_item(root, path, previous) for path in ing.scan(root)]
+    linked_out: list = []
+    base = os.path.realpath(root)
+    todo = [_scan_item(root, path, previous, allow_outside, base) for path in ing.scan(root, linked_out)]
     seen = Counter(item[1] for item in todo)
     for k, item in enumerate(todo):  # an escaped name that equals a real one: keep the key unique
         if item[4] is not None and seen[item[1]] > 1:
@@ -145,6 +160,9 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     summary.reused = sum(item[3] is not None for item in todo)
     summary.read = len(todo) - summary.reused
     _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary, allow_outside)
+    summary.warnings.extend(f"{ing.shown_path(link)}: a symbolic link to a folder outside the capture tree "
+                            f"(to {ing.shown_path(target)}): not scanned (ingest never follows links to folders)"
+                            for link, target in linked_out)
     for r in rows:
         r.pop("_file_error")
         r.pop("_content_role")

@@ -68,6 +68,18 @@ class BuildSummary:
         return {**self.__dict__, "message": self.message}
 
 
+def with_allow_outside(spec: Pipeline, allow: bool) -> Pipeline:
+    """``spec`` with its ingest stage's ``allow_outside`` set to ``allow`` (``--allow-outside``).
+    The value is part of the pipeline the card records (and so of its build key); the rows it
+    changes carry it into the stage keys: a frame whose flat field lies outside is refused
+    without it and records ``allow_outside`` in its ``view_json`` (the merge key) with it, and a
+    capture file linked out of the tree is refused without it and read with it."""
+    from dataclasses import replace
+
+    ingest = dict(sorted({**spec.stages["ingest"], "allow_outside": bool(allow)}.items()))
+    return replace(spec, stages={**spec.stages, "ingest": ingest})
+
+
 def _resolve_root(root, work: Path) -> Path:
     record = work / ROOT_FILE
     if root is not None:
@@ -111,7 +123,8 @@ def _append_log(work: Path, entry: dict) -> None:
 
 def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None = None, *,
                   landmarker_path=None, echo=None, progress: bool = False, executor: str = "local",
-                  address: str | None = None, workers: int = 2) -> BuildSummary:
+                  address: str | None = None, workers: int = 2,
+                  allow_outside: bool | None = None) -> BuildSummary:
     """Build (or bring up to date) the shard folder ``out`` from the capture tree ``root``
     (None: the one a previous build in ``work`` used). ``pipeline``: a :class:`Pipeline`, a
     TOML path, or None for ``pipelines/face2light.toml``. ``echo(str)`` receives one line per
@@ -119,10 +132,14 @@ def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None
     :class:`~f2l.pipeline.cache.LockHeld`, :class:`~f2l.pipeline.spec.PipelineError`,
     FileNotFoundError or ValueError (WORK or OUT inside ROOT) before writing anything.
     ``executor`` "ray": the per-item stages run as Ray tasks (:mod:`f2l.pipeline.ray_build`) on
-    the cluster at ``address``, or on a local one with ``workers`` CPUs; the output is the same."""
+    the cluster at ``address``, or on a local one with ``workers`` CPUs; the output is the same.
+    ``allow_outside``: None keeps the pipeline's ingest ``allow_outside``; True or False overrides
+    it (:func:`with_allow_outside`), and the card's pipeline records the value used."""
     if executor not in ("local", "ray"):
         raise ValueError(f"executor must be local or ray, got {executor!r}")
     spec = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
+    if allow_outside is not None:
+        spec = with_allow_outside(spec, allow_outside)
     work, out = Path(work), Path(out)
     root = Path(os.path.abspath(_resolve_root(root, work)))
     if not root.is_dir():

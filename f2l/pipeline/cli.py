@@ -31,6 +31,7 @@ def build_dataset_cmd(
     executor: str = typer.Option("local", "--executor", help="local, or ray: merge, sphere, calibrate and fit-faces (with transport) as Ray tasks; the same output."),
     address: Optional[str] = typer.Option(None, "--address", help="--executor ray: the cluster (HOST:PORT); without it a local Ray with --workers CPUs."),
     workers: int = typer.Option(2, "--workers", min=1, help="--executor ray without --address: CPUs of the local Ray."),
+    allow_outside: bool = typer.Option(False, "--allow-outside", help="As f2l ingest --allow-outside: a session.toml may name a flat field outside its session folder, and capture files that are symlinks out of ROOT are read (refused by default). Overrides the pipeline's ingest allow_outside."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON summary only."),
 ) -> None:
     """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out.
@@ -46,7 +47,8 @@ def build_dataset_cmd(
     try:
         summary = build_dataset(root, work, out, pipeline, landmarker_path=landmarker, echo=echo,
                                 progress=not json_out and sys.stderr.isatty(), executor=executor,
-                                address=address, workers=workers)
+                                address=address, workers=workers,
+                                allow_outside=True if allow_outside else None)
     except LockHeld as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=3)

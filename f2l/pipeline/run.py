@@ -38,7 +38,8 @@ def _ingest(spec, root: Path, work: Path, summary) -> list[dict]:
     p = spec.params("ingest")
     result = run_ingest(root, work, session_gap_min=float(p["session_gap_min"]),
                         bracket_gap_s=float(p["bracket_gap_s"]),
-                        detect_roles=bool(p["detect_roles"]))
+                        detect_roles=bool(p["detect_roles"]),
+                        allow_outside=bool(p.get("allow_outside", False)))
     summary.ingest = {"files": result.files, "read": result.read, "reused": result.reused,
                       "sessions": result.sessions, "brackets": result.brackets}
     return pq.read_table(work / TABLE_NAME).to_pylist()
