@@ -34,6 +34,22 @@ def _fit_an_address_space_limit() -> None:
 _fit_an_address_space_limit()
 
 
+_API = ("estimate_photo", "load_probe", "FaceEstimate")
+
+
+def __getattr__(name: str):
+    """The public Python API (:mod:`f2l.api`), loaded on first use so ``import f2l`` stays light."""
+    if name in _API:
+        from f2l import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'f2l' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + list(_API))
+
+
 def _at_exit() -> None:
     from f2l.io.probe_io import release_openimageio_references
 

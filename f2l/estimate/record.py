@@ -11,6 +11,7 @@ import math
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -63,30 +64,36 @@ def _base_row(record_like: dict, model: str) -> dict:
     }
 
 
-def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig) -> dict:
-    """Estimate one face with one model; never raises for a bad face (status in the row)."""
-    from f2l.io.exr import write_exr
-    from f2l.io.preview import save_png, tonemap
+class InMemoryEstimate(NamedTuple):
+    """One face's estimate before anything is written: ``result`` (None unless ``status`` is
+    "ok"), the absolute scale and its source, the status and message, the model (None when it
+    could not be built)."""
+
+    result: object
+    scale: float | None
+    scale_source: str
+    status: str
+    message: str
+    model: object
+
+
+def estimate_in_memory(record, model_name: str, cfg: EstimatorConfig) -> InMemoryEstimate:
+    """Estimate one face with one model in memory; never raises for a bad face (status
+    ``bad_record``, ``bad_face`` or ``error`` with the message)."""
     from f2l.io.shards import declared_size_problem
     from f2l.lighting.grid import LatLongGrid
 
     torch_threads(cfg.threads)
-    row = _base_row({"face_id": record.face_id, "source_path": record.source_path,
-                     "grid_height": record.grid_height, "grid_width": record.grid_width}, model_name)
-    t0 = time.perf_counter()
-    model = None
     # the record's own sizes before anything is allocated from them (the model's grid, transport):
     # a record beyond them is refused as the record's fault, not the model's
     problem = declared_size_problem(record.num_pixels, record.grid_height, record.grid_width,
                                     min_pixels=1)
     if problem is not None:
-        row.update(status="bad_record", message=f"{record.face_id}: {problem}")
-        return row
+        return InMemoryEstimate(None, None, "", "bad_record", f"{record.face_id}: {problem}", None)
+    model = None
     try:
         grid = LatLongGrid(record.grid_height, record.grid_width)
         model = _get_model(model_name, grid)
-        row["model_version"] = str(model.version)
-        row["config_hash"] = config_hash(model_name, model.version, cfg)
         obs = FaceObservation(
             normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
             visibility_bits=record.visibility_bits, grid=grid, face_id=record.face_id,
@@ -99,6 +106,35 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
                 run_cfg = dataclasses.replace(cfg, sun_elevation_prior=prior)
         result = estimate(obs, model, run_cfg)
         scale, scale_source = record_absolute_scale(record)
+        return InMemoryEstimate(result, scale, scale_source, "ok", prior_note, model)
+    except EstimationError as exc:
+        return InMemoryEstimate(None, None, "", "bad_face", f"{record.face_id}: {exc}", model)
+    except Exception as exc:  # noqa: BLE001 - one failure never stops the batch
+        who = "" if model is None else (f" (model {model_name!r}, {type(model).__module__}:{type(model).__qualname__}, "
+                                        f"capabilities: {', '.join(declared(model)) or 'none'})")
+        return InMemoryEstimate(None, None, "", "error", f"{record.face_id}{who}: {type(exc).__name__}: {exc}", model)
+
+
+def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig) -> dict:
+    """Estimate one face with one model and write its probe and preview; never raises for a bad
+    face (status in the row)."""
+    from f2l.io.exr import write_exr
+    from f2l.io.preview import save_png, tonemap
+
+    row = _base_row({"face_id": record.face_id, "source_path": record.source_path,
+                     "grid_height": record.grid_height, "grid_width": record.grid_width}, model_name)
+    t0 = time.perf_counter()
+    done = estimate_in_memory(record, model_name, cfg)
+    if done.model is not None:
+        row["model_version"] = str(done.model.version)
+        row["config_hash"] = config_hash(model_name, done.model.version, cfg)
+    if done.result is None:
+        row.update(status=done.status, message=done.message)
+        if done.status != "bad_record":
+            row["runtime_s"] = time.perf_counter() - t0
+        return row
+    result, scale, scale_source = done.result, done.scale, done.scale_source
+    try:
         safe_id = _safe_name(record.face_id)
         probe_rel = f"probes/{model_name}/{safe_id}.exr"
         preview_rel = f"previews/{model_name}/{safe_id}.png"
@@ -122,19 +158,15 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
             iterations=int(result.iterations),
             converged=bool(result.converged),
             status="ok",
-            message=prior_note,
+            message=done.message,
             probe_path=probe_rel,
             preview_path=preview_rel,
             timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
             absolute_scale_cd_m2=None if scale is None else float(scale),
             absolute_scale_source=scale_source,
         )
-    except EstimationError as exc:
-        row.update(status="bad_face", message=f"{record.face_id}: {exc}")
     except Exception as exc:  # noqa: BLE001 - one failure never stops the batch
-        who = "" if model is None else (f" (model {model_name!r}, {type(model).__module__}:{type(model).__qualname__}, "
-                                        f"capabilities: {', '.join(declared(model)) or 'none'})")
-        row.update(status="error", message=f"{record.face_id}{who}: {type(exc).__name__}: {exc}")
+        row.update(status="error", message=f"{record.face_id}: {type(exc).__name__}: {exc}")
     row["runtime_s"] = time.perf_counter() - t0
     return row
 
