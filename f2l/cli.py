@@ -299,17 +299,22 @@ def _load_model_or_fail(name: str, grid):
 
 def _fit_probe_inputs(probes: list[Path], model: str, grid: str, json_out: bool, what: str,
                       out_dir: Optional[Path] = None):
-    """(model, fit records) for the EXRs found in ``probes``, with a progress bar."""
-    from f2l.estimate.prior_build import fit_probes, list_probes
+    """(model, fit records, skipped) for the HDR probes found in ``probes``
+    (:func:`f2l.estimate.probe_fit.list_probe_files`; the other files of its folders are named
+    as skipped on stderr), with a progress bar. Each probe is fitted by
+    :func:`f2l.estimate.probe_fit.fit_probe_files`: a bad one is a record with status "error"."""
+    from f2l.estimate.probe_fit import fit_probe_files, list_probe_files
 
-    paths = list_probes(probes)
+    paths, skipped = list_probe_files(probes)
+    for message in skipped:
+        typer.echo(f"f2l: {message}", err=True)
     if not paths:
-        _fail("no .exr probes found in " + ", ".join(map(str, probes)))
+        _fail("no .exr probes found (nor .hdr, .rgbe, .tif, .tiff, .pfm) in " + ", ".join(map(str, probes)))
     m = _load_model_or_fail(model, _grid(grid))
     step, close = _progress(len(paths), f"{what} {model}", not json_out)
-    records = fit_probes(paths, m, progress=step, out_dir=out_dir)
+    records = fit_probe_files(paths, m, progress=step, out_dir=out_dir)
     close()
-    return m, records
+    return m, records, skipped
 
 
 @app.command("fit-probe")
@@ -326,17 +331,8 @@ def fit_probe_cmd(
     with status "error" and its reason; the others are fitted and the table is written. Exit code
     4 when some probes failed, 1 when every probe failed."""
     from f2l.estimate.prior_build import write_fit_report
-    from f2l.estimate.probe_fit import fit_probe_files, list_probe_files
 
-    paths, skipped = list_probe_files(probes)
-    for message in skipped:
-        typer.echo(f"f2l: {message}", err=True)
-    if not paths:
-        _fail("no .exr probes found (nor .hdr, .rgbe, .tif, .tiff, .pfm) in " + ", ".join(map(str, probes)))
-    m = _load_model_or_fail(model, _grid(grid))
-    step, close = _progress(len(paths), f"fit-probe {model}", not json_out)
-    records = fit_probe_files(paths, m, progress=step, out_dir=out)
-    close()
+    m, records, skipped = _fit_probe_inputs(probes, model, grid, json_out, "fit-probe", out)
     summary = write_fit_report(records, m, out)
     summary["skipped"] = skipped
     if json_out:
@@ -366,7 +362,7 @@ def sky_corpus(
 
 @app.command("build-prior")
 def build_prior_cmd(
-    probes: list[Path] = typer.Argument(..., help="Folders of lat-long sky EXRs (or files)."),
+    probes: list[Path] = typer.Argument(..., help="Folders of lat-long sky probes (.exr, .hdr, .pfm, float .tif), or files."),
     model: str = typer.Option(..., "--model", "-m", help="Lighting model name."),
     out: Path = typer.Option(..., "--out", help="Prior JSON to write."),
     components: int = typer.Option(6, help="GMM components."),
@@ -374,22 +370,31 @@ def build_prior_cmd(
     grid: str = typer.Option("64x128", help="Model grid HxW."),
     json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
 ) -> None:
-    """Fit the model to every probe, then a GMM over its prior features: the model's prior."""
+    """Fit the model to every probe, then a GMM over its prior features: the model's prior.
+
+    A probe that cannot be fitted (unreadable, malformed side file, black, implausible, a fit that
+    overflows) is skipped with its reason on stderr and the prior is built from the others. Exit
+    code 4 when some probes were skipped (the prior is written), 1 when none could be fitted."""
+    from f2l.cli_support import EXIT_NOTHING_DONE
     from f2l.estimate.model_prior import save_prior
     from f2l.estimate.prior_build import build_prior
 
-    m, records = _fit_probe_inputs(probes, model, grid, json_out, "build-prior")
+    m, records, _ = _fit_probe_inputs(probes, model, grid, json_out, "build-prior")
     bad = [r for r in records if r.status != "ok"]
     for r in bad[:10]:
         typer.echo(f"f2l: skipped {r.message}", err=True)
+    if len(bad) > 10:
+        typer.echo(f"f2l: ... and {len(bad) - 10} more probes skipped", err=True)
     try:
         prior = build_prior(m, records, n_components=components, seed=seed,
                             corpus={"sources": [str(p) for p in probes]})
     except ValueError as exc:
-        _fail(str(exc))
+        nothing_fitted = records and len(bad) == len(records) and m.prior_feature_names is not None
+        _fail(str(exc), EXIT_NOTHING_DONE if nothing_fitted else 2)
     save_prior(prior, out)
     typer.echo(json.dumps({"out": str(out), "fitted": len(records) - len(bad), "skipped": len(bad),
                            "components": prior.num_components, "features": prior.features}))
+    exit_for(len(bad), len(records) - len(bad))
 
 
 # stages with a CLI module of their own (f2l/<stage>/cli.py)

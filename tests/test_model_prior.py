@@ -417,3 +417,36 @@ def test_fit_report_breaks_the_sky_errors_down_by_kind():
                                  "overcast (1): Full-dω (Sky-dω) MAE (l) |")
     assert table["lines"][2] == "| m | 0.2 (0.1) | 0.02 (0.01) |"
     assert kind_table([ProbeRecord("x.exr", "ok", extra={"metrics": {}})], "m") == {"rows": [], "lines": []}
+
+
+def test_cli_build_prior_skips_bad_probes_and_reads_every_hdr_format(tmp_path, runner):
+    """build-prior lists probes as fit-probe does (EXR, Radiance, PFM; other files named as
+    skipped) and fits them with per-probe errors: a bad probe is skipped with its reason, the prior
+    is built from the rest (written), exit 4."""
+    import OpenImageIO as oiio
+
+    from f2l.io.exr import write_exr
+
+    corpus = tmp_path / "skies"
+    good = write_sky_corpus(corpus, 2, seed=0, grid=GRID)
+    sky = read_exr(good[0])
+    out = oiio.ImageOutput.create(str(corpus / "radiance.hdr"))  # a third good probe, not an EXR
+    out.open(str(corpus / "radiance.hdr"), oiio.ImageSpec(sky.shape[1], sky.shape[0], 3, oiio.FLOAT))
+    out.write_image(sky)
+    out.close()
+    write_exr(corpus / "black.exr", np.zeros((16, 32, 3), np.float32))
+    (corpus / "bad.pfm").write_bytes(b"PF\n32 16\n-1.0\n" + b"\x00" * 10)  # truncated
+    (corpus / "sky_0001.json").write_text('{"kind": "clear", "sun_direction": [0, 0, 0]}')  # malformed side file
+    (corpus / "notes.txt").write_text("not a probe")
+    prior_path = tmp_path / "p.json"
+    res = runner.invoke(app, ["build-prior", str(corpus), "--model", "sunsky", "--grid", "16x32",
+                              "--out", str(prior_path), "--components", "1", "--json"])
+    assert res.exit_code == 4, res.output
+    assert "Traceback" not in res.output
+    info = json.loads(res.stdout)
+    assert info["fitted"] == 2 and info["skipped"] == 3 and prior_path.is_file()
+    assert load_prior(prior_path).corpus == {"probes": 5, "fitted": 2, "sources": [str(corpus)]}
+    for name, why in (("black.exr", "black"), ("bad.pfm", ""), ("sky_0001.json", "sun_direction")):
+        assert any(str(corpus / name) in line and why in line for line in res.stderr.splitlines()
+                   if line.startswith("f2l: skipped")), (name, res.stderr)
+    assert f"{corpus / 'notes.txt'}: skipped: not an HDR image" in res.stderr

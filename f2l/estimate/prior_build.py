@@ -13,7 +13,6 @@ works the same (e.g. captured probes from ``f2l ingest``).
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
@@ -69,22 +68,12 @@ def write_sky_corpus(out_dir: str | Path, n: int, seed: int = 0, grid=None,
 
 
 def list_probes(inputs: Iterable[str | Path]) -> list[Path]:
-    """EXR files named directly or found (sorted, recursively) in the given folders."""
-    found: list[Path] = []
-    for item in inputs:
-        p = Path(item)
-        found.extend(sorted(p.rglob("*.exr")) if p.is_dir() else [p])
-    return found
+    """The probes :func:`f2l.estimate.probe_fit.list_probe_files` finds: files named directly, and
+    the HDR images (EXR, Radiance, PFM, float TIFF) found, sorted, recursively, in the given
+    folders (use ``list_probe_files`` to get the other files of those folders named as skipped)."""
+    from f2l.estimate.probe_fit import list_probe_files
 
-
-def _side_info(path: Path) -> dict:
-    side = path.with_suffix(".json")
-    if not side.exists():
-        return {}
-    try:
-        return json.loads(side.read_text())
-    except (OSError, ValueError):
-        return {}
+    return list_probe_files(inputs)[0]
 
 
 def probe_fit_metrics(fit, probe: np.ndarray, grid) -> dict:
@@ -101,50 +90,15 @@ def probe_fit_metrics(fit, probe: np.ndarray, grid) -> dict:
 
 def fit_probes(paths: list[Path], model, progress: Callable | None = None,
                out_dir: str | Path | None = None, **fit_options) -> list[ProbeRecord]:
-    """fit_probe on every path; a bad file gets status 'error' and a message, the rest go on.
+    """:func:`f2l.estimate.probe_fit.fit_probe_files`: fit_probe on every path; a bad probe
+    (unreadable or oversized file, malformed side file, black, uncovered or implausibly bright
+    probe, a fit that overflows) gets status 'error' and a message naming it, the rest go on.
     With ``out_dir``, each fitted probe is written there as ``<stem>_<model>.exr``. Each record's
     ``extra["metrics"]`` holds :func:`probe_fit_metrics`, and ``extra["variants"]`` the same for
     the fit's named variants (e.g. ``ae_ff``)."""
-    from f2l.estimate.probe_fit import ProbeFitError, fit_probe
-    from f2l.io.exr import ExrError, read_exr, write_exr
+    from f2l.estimate.probe_fit import fit_probe_files
 
-    if out_dir is not None:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-
-    records = []
-    for path in paths:
-        info = _side_info(path)
-        try:
-            probe = read_exr(path)
-            fit = fit_probe(probe, model, **fit_options)
-        except (ExrError, ProbeFitError, OSError, ValueError) as exc:
-            message = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
-            records.append(ProbeRecord(str(path), "error", message, kind=info.get("kind")))
-        else:
-            rec = ProbeRecord(str(path), "ok", params=fit.params.tolist(), loss=fit.loss,
-                              runtime_s=fit.runtime_s, kind=info.get("kind"),
-                              sun_direction=None if fit.sun_direction is None else
-                              [float(v) for v in fit.sun_direction])
-            rec.extra["metrics"] = probe_fit_metrics(fit, probe, model.grid)
-            rec.extra["variants"] = {name: {"metrics": probe_fit_metrics(v, probe, model.grid),
-                                            "runtime_s": v.runtime_s, "params": v.params.tolist()}
-                                     for name, v in fit.variants.items()}
-            if out_dir is not None:
-                fitted_path = Path(out_dir) / f"{path.stem}_{model.name}.exr"
-                write_exr(fitted_path, fit.probe)
-                rec.extra["fitted_probe"] = str(fitted_path)
-                for name, v in fit.variants.items():
-                    write_exr(Path(out_dir) / f"{path.stem}_{name}.exr", v.probe)
-            true_sun = info.get("sun_direction")
-            if true_sun is not None and fit.sun_direction is not None:
-                t = np.asarray(true_sun, dtype=np.float64)
-                c = float(np.clip(np.dot(t / np.linalg.norm(t), fit.sun_direction), -1.0, 1.0))
-                rec.true_sun_direction = [float(v) for v in t]
-                rec.sun_angle_deg = math.degrees(math.acos(c))
-            records.append(rec)
-        if progress:
-            progress(1)
-    return records
+    return fit_probe_files(paths, model, progress=progress, out_dir=out_dir, **fit_options)
 
 
 def build_prior(model, records: list[ProbeRecord], n_components: int = 6, seed: int = 0,
