@@ -294,6 +294,34 @@ def test_ray_build_equals_the_local_build(tree, reference, tmp_path):
     assert again.nothing_to_do and all(v == 0 for v in computed(again).values())
 
 
+def _broken_merge_work(reference, dest: Path) -> Path:
+    """A copy of the reference build's work folder whose merged views are garbage (their entries
+    still complete) and whose sphere entries are gone: the sphere of session site raises."""
+    work = dest / "work"
+    shutil.copytree(reference[1], work)
+    for exr in (work / "cache" / "merge").glob("*/**/*.exr"):
+        exr.write_bytes(b"not an EXR file" * 8)
+    shutil.rmtree(work / "cache" / "sphere")
+    return work
+
+
+def test_ray_sphere_failure_is_recorded_per_session(tree, reference, tmp_path):
+    """A sphere task that raises on Ray stops nothing: the session is left out with its reason, as
+    in the local build (the same failed list, the same output), and the other sessions are built."""
+    pytest.importorskip("ray")
+    work = _broken_merge_work(reference, tmp_path)  # one path for both builds: the reasons name it
+    local = build_dataset(tree / "raw", work, tmp_path / "l" / "out", tree / "pipeline.toml")
+    shutil.rmtree(work)
+    _broken_merge_work(reference, tmp_path)
+    on_ray = build_dataset(tree / "raw", work, tmp_path / "r" / "out", tree / "pipeline.toml",
+                           executor="ray", workers=2)
+    failed = [f for f in on_ray.failed if f["stage"] == "sphere"]
+    assert [f["path"] for f in failed] == ["site"] and "probe not computed" in failed[0]["reason"], on_ray.failed
+    assert on_ray.failed == local.failed and on_ray.counts == local.counts
+    assert on_ray.counts["records"] > 0 and on_ray.counts["sessions_with_probe"] == 1  # park's given probe
+    assert_same_output(tmp_path / "l" / "out", tmp_path / "r" / "out")
+
+
 def _records(out: Path):
     from f2l.io.shards import iter_records
 

@@ -10,7 +10,9 @@ workers (a local cluster, or a shared file system).
 Streaming: every merge (per bracket), calibration (per chart) and fit-faces with its transport
 (per face photo) is submitted at once; a session's sphere assembly is a task that takes its own
 merges' results as arguments, so it starts when they are done and waits for nothing else.
-Face photos go to an actor pool (one landmarker per actor, loaded once). Kill -9 and resume
+Face photos go to an actor pool (one landmarker per actor, loaded once). A merge, sphere or
+calibrate task that raises stops nothing: its entry is left unmade, and the local pass computes it
+as a local build does and records the failure for that session or chart alone. Kill -9 and resume
 behave as in the local build: an entry is published atomically when its task finishes, a killed
 build leaves only temporary folders, which the next build sweeps, and a rerun computes only the
 entries that are missing. Ray tasks can outlive a SIGKILLed driver by a moment; they carry the
@@ -77,9 +79,21 @@ class _Fitter:
         return counts.get("computed", 0)
 
 
+def _finished(ray, ref) -> int:
+    """Entries a finished merge task made (0 when it raised)."""
+    try:
+        return int(ray.get(ref))
+    except Exception:  # noqa: BLE001
+        return 0
+
+
 def prewarm(spec, root: Path, work: Path, sessions: list, landmarker_path=None, *, token: str,
             address: str | None = None, workers: int = 2, progress=None) -> dict[str, int]:
-    """Make every per-item cache entry of ``sessions`` on Ray; returns entries computed per stage."""
+    """Make every per-item cache entry of ``sessions`` on Ray; returns entries computed per stage,
+    and under ``"failed"`` the number of merge/sphere or calibrate tasks that raised (none when
+    nothing did). A task that raises stops nothing: its entry is left unmade, and the local pass
+    that follows computes it as a local build does, recording the failure for that session or
+    chart alone (:func:`f2l.pipeline.run._session_probe`)."""
     try:
         import ray
         from ray.util import ActorPool
@@ -108,6 +122,7 @@ def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list,
     grid_hw = (spec.grid_height, spec.grid_width)
     merge_task, sphere_task, calibrate_task = (ray.remote(num_cpus=1)(f) for f in (_merge, _sphere, _calibrate))
     pending: dict = {}  # object ref -> stage
+    merges_of: dict = {}  # sphere task's ref -> its merge tasks' refs
     if spec.has("merge"):
         params = spec.params("merge")
         restore_sun = bool(spec.params("sphere").get("restore_sun", False))
@@ -115,7 +130,8 @@ def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list,
             if plan.given_probe is not None or not plan.brackets or "merge" in plan.skipped:
                 continue
             merges = [merge_task.remote(work, token, root, plan, bid, params) for bid in sorted(plan.brackets)]
-            pending[sphere_task.remote(work, token, root, plan, params, grid_hw, restore_sun, *merges)] = "sphere"
+            ref = sphere_task.remote(work, token, root, plan, params, grid_hw, restore_sun, *merges)
+            pending[ref], merges_of[ref] = "sphere", merges
     if spec.has("calibrate"):
         for plan in sessions:
             for row in plan.charts:
@@ -135,7 +151,16 @@ def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list,
         if pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=0.05)
             for ref in done:
-                stage, value = pending.pop(ref), ray.get(ref)
+                stage = pending.pop(ref)
+                try:
+                    value = ray.get(ref)
+                except Exception:  # noqa: BLE001 - this session's or chart's failure, not the build's
+                    # no entry was made: the local pass computes it again and records the failure
+                    # for this item alone, as a local build does (run._session_probe); the others go on
+                    counts["failed"] = counts.get("failed", 0) + 1
+                    if stage == "sphere":  # the merges that did finish made their entries
+                        counts["merge"] += sum(_finished(ray, m) for m in merges_of[ref])
+                    continue
                 if stage == "sphere":
                     counts["merge"] += value["merge"]
                     counts["sphere"] += value["sphere"]

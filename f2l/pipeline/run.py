@@ -126,8 +126,10 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
 
         on_ray = prewarm(spec, root, work, sessions, landmarker_path, token=executor["token"],
                          address=executor.get("address"), workers=int(executor.get("workers", 2)))
+        failed = on_ray.pop("failed", 0)  # tasks that raised: computed (and recorded) below
         summary.on_executor = dict(on_ray)
-        clock.lap("ray", ", ".join(f"{k} {v}" for k, v in on_ray.items()) + " entries made on Ray")
+        clock.lap("ray", ", ".join(f"{k} {v}" for k, v in on_ray.items()) + " entries made on Ray"
+                  + (f"; {failed} task(s) failed, computed again here" if failed else ""))
     problems = sorted({(r["session"], r["session_problem"]) for r in rows if r.get("session_problem")})
     warnings: list[str] = [f"session {session}: session.toml not used: {relative_message(problem, root)}"
                            for session, problem in problems]
