@@ -40,9 +40,10 @@ _API = ("estimate_photo", "load_probe", "FaceEstimate")
 def __getattr__(name: str):
     """The public Python API (:mod:`f2l.api`), loaded on first use so ``import f2l`` stays light."""
     if name in _API:
-        from f2l import api
+        import importlib
 
-        return getattr(api, name)
+        # loaded when first asked for: the package root does not depend on f2l.api at import
+        return getattr(importlib.import_module("f2l.api"), name)
     raise AttributeError(f"module 'f2l' has no attribute {name!r}")
 
 

@@ -13,34 +13,16 @@ works the same (e.g. captured probes from ``f2l ingest``).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
 from f2l.estimate.model_prior import GmmPrior, fit_gmm
+from f2l.estimate.probe_fit import ProbeRecord, probe_fit_metrics  # noqa: F401 (re-exported)
 from f2l.io.atomic import write_text_atomic
 
 __all__ = ["ProbeRecord", "write_sky_corpus", "list_probes", "fit_probes", "build_prior"]
-
-
-@dataclass
-class ProbeRecord:
-    """One probe's fit: path, status ('ok' or 'error'), message, params, sun direction, its
-    known sun direction (side file) and the angle between them (degrees), loss, time."""
-
-    path: str
-    status: str
-    message: str = ""
-    params: list | None = None
-    sun_direction: list | None = None
-    true_sun_direction: list | None = None
-    sun_angle_deg: float | None = None
-    kind: str | None = None
-    loss: float | None = None
-    runtime_s: float | None = None
-    extra: dict = field(default_factory=dict)
 
 
 def write_sky_corpus(out_dir: str | Path, n: int, seed: int = 0, grid=None,
@@ -74,18 +56,6 @@ def list_probes(inputs: Iterable[str | Path]) -> list[Path]:
     from f2l.estimate.probe_fit import list_probe_files
 
     return list_probe_files(inputs)[0]
-
-
-def probe_fit_metrics(fit, probe: np.ndarray, grid) -> dict:
-    """The §5.1 lighting metrics (``f2l.metrics.lighting.probe_metrics``: Full/Sky/Sun-dω MAE and
-    Sun-ang, sun metrics NaN where the overcast heuristic calls the probe overcast) of a fit
-    against the probe it fitted, on the model's grid. The estimated sun is the model's own
-    (``fit.sun_direction``) where it has one, else the fitted probe's brightest region."""
-    from f2l.estimate.probe_fit import _check_probe
-    from f2l.metrics.lighting import probe_metrics
-
-    gt = _check_probe(probe, grid)
-    return probe_metrics(fit.probe, gt, grid, est_sun_dir=fit.sun_direction)
 
 
 def fit_probes(paths: list[Path], model, progress: Callable | None = None,

@@ -302,7 +302,7 @@ def _finite_float32(name: str, values) -> None:
 
 
 def fit_probe_file(path, model, out_dir=None, **fit_options):
-    """``fit_probe`` on one probe file → a :class:`f2l.estimate.prior_build.ProbeRecord`; every
+    """``fit_probe`` on one probe file → a :class:`ProbeRecord`; every
     failure (unreadable or oversized file, malformed side file, black, uncovered or implausibly
     bright probe, a fit or a fitted probe that overflows float32) is a record with status
     "error" and a message naming the file, never an exception. The file is read at most at the
@@ -310,7 +310,6 @@ def fit_probe_file(path, model, out_dir=None, **fit_options):
     with ``out_dir`` the fitted probe is written there as ``<stem>_<model>.exr`` (atomically)."""
     from pathlib import Path
 
-    from f2l.estimate.prior_build import ProbeRecord, probe_fit_metrics
     from f2l.io.exr import write_exr
     from f2l.io.probe_io import hdr_image_size, read_hdr_image
     from f2l.lighting.plausibility import probe_problem
@@ -376,3 +375,32 @@ def fit_probe_files(paths, model, progress=None, out_dir=None, **fit_options) ->
         if progress:
             progress(1)
     return records
+
+
+@dataclass
+class ProbeRecord:
+    """One probe's fit: path, status ('ok' or 'error'), message, params, sun direction, its
+    known sun direction (side file) and the angle between them (degrees), loss, time."""
+
+    path: str
+    status: str
+    message: str = ""
+    params: list | None = None
+    sun_direction: list | None = None
+    true_sun_direction: list | None = None
+    sun_angle_deg: float | None = None
+    kind: str | None = None
+    loss: float | None = None
+    runtime_s: float | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def probe_fit_metrics(fit, probe: np.ndarray, grid) -> dict:
+    """The §5.1 lighting metrics (``f2l.metrics.lighting.probe_metrics``: Full/Sky/Sun-dω MAE and
+    Sun-ang, sun metrics NaN where the overcast heuristic calls the probe overcast) of a fit
+    against the probe it fitted, on the model's grid. The estimated sun is the model's own
+    (``fit.sun_direction``) where it has one, else the fitted probe's brightest region."""
+    from f2l.metrics.lighting import probe_metrics
+
+    gt = _check_probe(probe, grid)
+    return probe_metrics(fit.probe, gt, grid, est_sun_dir=fit.sun_direction)
