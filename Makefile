@@ -38,7 +38,7 @@ test-cpu-paths: $(STAMP)
 	$(BIN)/python tests/cpu_paths.py --report build/cpu_paths.md
 
 bench: $(STAMP)
-	$(BIN)/f2l bench --faces 1
+	$(BIN)/f2l dev bench --faces 1
 
 # Every reader of outside input fed 2,000 mutated files each, and every batch command 100-200, under a 2 GB address-space limit
 # (tests/fuzzing.py; `make test` runs 60 per reader): ~6 min on 2 cores. Replay a failure with
@@ -49,10 +49,10 @@ fuzz: $(STAMP)
 # Face detection on real photographs framed wide (docs/experiments/face_detection.md): recall by face
 # width, false detections per 100 face-free photos, time by photo size (~1 min on 2 cores)
 bench-detect: $(STAMP)
-	$(BIN)/f2l bench-detect
+	$(BIN)/f2l dev bench-detect
 
 bench-faces: $(STAMP)
-	$(BIN)/f2l bench-faces --faces 6
+	$(BIN)/f2l dev bench-faces --faces 6
 
 # Real framings, path-traced (f2l/render/framing.py): 30 half-body, 30 full-body and 40 group photos (2-5
 # people; ~200 faces) at 1280 px and 16 spp; detection recall by face width and framing (bench-detect
@@ -60,29 +60,29 @@ bench-faces: $(STAMP)
 # docs/experiments/face_detection.md). ~60 min on 2 cores; resumable.
 EVAL_FRAMINGS := build/eval_framings
 eval-framings: $(STAMP)
-	$(BIN)/f2l render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json
-	$(BIN)/f2l render-faces --framing full --out $(EVAL_FRAMINGS)/full --n 30 --seed 0 --image-px 1280 --spp 16 --json
-	$(BIN)/f2l render-faces --framing group --out $(EVAL_FRAMINGS)/group --n 40 --seed 0 --image-px 1280 --spp 16 --json
-	$(BIN)/f2l bench-detect --rendered $(EVAL_FRAMINGS)/half --rendered $(EVAL_FRAMINGS)/full \
+	$(BIN)/f2l eval render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l eval render-faces --framing full --out $(EVAL_FRAMINGS)/full --n 30 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_FRAMINGS)/group --n 40 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l dev bench-detect --rendered $(EVAL_FRAMINGS)/half --rendered $(EVAL_FRAMINGS)/full \
 		--rendered $(EVAL_FRAMINGS)/group
 	$(BIN)/f2l fit-faces $(EVAL_FRAMINGS)/half/photos $(EVAL_FRAMINGS)/full/photos $(EVAL_FRAMINGS)/group/photos \
 		--out $(EVAL_FRAMINGS)/fitted --json
 	$(BIN)/f2l estimate $(EVAL_FRAMINGS)/fitted -m sunsky --out $(EVAL_FRAMINGS)/est --json
-	$(BIN)/f2l eval-framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
+	$(BIN)/f2l eval framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
 		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est --out $(EVAL_FRAMINGS)
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)
-	$(BIN)/f2l sky-corpus --out build/sky_corpus --n 200 --seed 0 --json
-	$(BIN)/f2l build-prior build/sky_corpus --model sunsky --components 6 --seed 0 \
+	$(BIN)/f2l prior sky-corpus --out build/sky_corpus --n 200 --seed 0 --json
+	$(BIN)/f2l prior build build/sky_corpus --model sunsky --components 6 --seed 0 \
 		--out plugins/f2l_builtin_models/data/sunsky_prior.json --json
 
 # Rebuild the shipped sky-autoencoder weights (+ latent prior, model card, loss curve) from the
 # project's own sky corpus (docs/ae.md): 16.5 min on 2 cores; bit-identical tensors on the machine that
 # trained them, the same held-out metrics elsewhere (docs/numerics.md). Resumable.
 ae-weights: $(STAMP)
-	$(BIN)/f2l ae-corpus --out build/ae_corpus --n-train 4000 --n-heldout 150 --seed 0 --json
-	$(BIN)/f2l train-ae build/ae_corpus/train --heldout build/ae_corpus/heldout --work-dir build/ae_train \
+	$(BIN)/f2l ae corpus --out build/ae_corpus --n-train 4000 --n-heldout 150 --seed 0 --json
+	$(BIN)/f2l ae train build/ae_corpus/train --heldout build/ae_corpus/heldout --work-dir build/ae_train \
 		--epochs 5 --batch-size 16 --seed 0 --out plugins/f2l_builtin_models/data/ae_sky.npz
 
 # Sky autoencoder against the other built-in models (docs/results/ae.md): paper Table 1 —
@@ -91,11 +91,11 @@ ae-weights: $(STAMP)
 # The synthetic faces are Lambertian: read them so (--skin-gloss 0; the default is for real skin).
 EVAL_AE := build/eval_ae
 eval-ae: $(STAMP)
-	$(BIN)/f2l ae-corpus --out $(EVAL_AE)/corpus --n-train 4000 --n-heldout 150 --seed 0 --split heldout --json
+	$(BIN)/f2l ae corpus --out $(EVAL_AE)/corpus --n-train 4000 --n-heldout 150 --seed 0 --split heldout --json
 	for m in sh9 sh25 sunsky ae; do \
-		$(BIN)/f2l fit-probe $(EVAL_AE)/corpus/heldout --model $$m --out $(EVAL_AE)/table1/$$m || exit 1; \
+		$(BIN)/f2l eval fit-probe $(EVAL_AE)/corpus/heldout --model $$m --out $(EVAL_AE)/table1/$$m || exit 1; \
 	done
-	$(BIN)/f2l synth --out $(EVAL_AE)/faces --n 24 --seed 11 --json
+	$(BIN)/f2l eval synth --out $(EVAL_AE)/faces --n 24 --seed 11 --json
 	$(BIN)/f2l estimate $(EVAL_AE)/faces -m sh9 -m sh25 -m sunsky -m ae --skin-gloss 0 --out $(EVAL_AE)/est --json
 	$(BIN)/f2l evaluate $(EVAL_AE)/est
 
@@ -104,9 +104,9 @@ eval-ae: $(STAMP)
 # f2l's own renders are Lambertian: read them so (--skin-gloss 0; the default is for real skin).
 EVAL_SUNSKY := build/eval_sunsky
 eval-sunsky: $(STAMP)
-	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 \
+	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 \
 		--sun-elevation-deg 10:70 --capture --json
-	$(BIN)/f2l synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --json
+	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --no-sun-prior --skin-gloss 0 --out $(EVAL_SUNSKY)/est_sunny --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sunsky --skin-gloss 0 --out $(EVAL_SUNSKY)/est_sunny_exif --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --skin-gloss 0 --out $(EVAL_SUNSKY)/est_overcast --json
@@ -120,11 +120,11 @@ eval-sunsky: $(STAMP)
 # The photos are Lambertian: read them so (--skin-gloss 0).
 EVAL_FIT := build/eval_fit_faces
 eval-fit-faces: $(STAMP)
-	$(BIN)/f2l synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features \
+	$(BIN)/f2l eval synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features \
 		--overcast-fraction 0 --sun-elevation-deg 10:70 --json
 	$(BIN)/f2l fit-faces $(EVAL_FIT)/truth/photos --out $(EVAL_FIT)/fitted \
 		--gt-probes $(EVAL_FIT)/truth/probes --json
-	$(BIN)/f2l compare-geometry $(EVAL_FIT)/fitted --truth $(EVAL_FIT)/truth --twin-out $(EVAL_FIT)/true_geometry
+	$(BIN)/f2l eval compare-geometry $(EVAL_FIT)/fitted --truth $(EVAL_FIT)/truth --twin-out $(EVAL_FIT)/true_geometry
 	$(BIN)/f2l estimate $(EVAL_FIT)/fitted -m sunsky --no-sun-prior --skin-gloss 0 --out $(EVAL_FIT)/est_fitted --json
 	$(BIN)/f2l estimate $(EVAL_FIT)/true_geometry -m sunsky --no-sun-prior --skin-gloss 0 --out $(EVAL_FIT)/est_true_geometry --json
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_fitted
@@ -143,12 +143,12 @@ EVAL_REAL_N ?= 128
 MODELS := -m sh9 -m sh25 -m sunsky -m ae
 FIT_TRUTH := --fit-truth sunsky --fit-truth ae
 eval-real: $(STAMP)
-	$(BIN)/f2l render-faces --out $(EVAL_REAL)/pbr --n $(EVAL_REAL_N) --seed 0 --json
+	$(BIN)/f2l eval render-faces --out $(EVAL_REAL)/pbr --n $(EVAL_REAL_N) --seed 0 --json
 	$(BIN)/f2l fit-faces $(EVAL_REAL)/pbr/photos --out $(EVAL_REAL)/fitted --gt-probes $(EVAL_REAL)/pbr/probes --json
-	$(BIN)/f2l twin-geometry $(EVAL_REAL)/fitted --render $(EVAL_REAL)/pbr --out $(EVAL_REAL)/true_geometry --json
+	$(BIN)/f2l eval twin-geometry $(EVAL_REAL)/fitted --render $(EVAL_REAL)/pbr --out $(EVAL_REAL)/true_geometry --json
 	$(BIN)/f2l estimate $(EVAL_REAL)/fitted $(MODELS) --out $(EVAL_REAL)/est --json
 	$(BIN)/f2l estimate $(EVAL_REAL)/true_geometry $(MODELS) --out $(EVAL_REAL)/est_true_geometry --json
-	$(BIN)/f2l eval-real $(EVAL_REAL)/pbr --est $(EVAL_REAL)/est --est "true geometry=$(EVAL_REAL)/est_true_geometry" \
+	$(BIN)/f2l eval real $(EVAL_REAL)/pbr --est $(EVAL_REAL)/est --est "true geometry=$(EVAL_REAL)/est_true_geometry" \
 		--out $(EVAL_REAL) $(FIT_TRUTH)
 
 # On maps no default was chosen on (docs/results/eval_real.md "On maps held out from tuning"): EVAL_HELDOUT_N cases
@@ -158,12 +158,12 @@ eval-real: $(STAMP)
 EVAL_HELDOUT := build/eval_real_heldout
 EVAL_HELDOUT_N ?= 64
 eval-real-heldout: $(STAMP)
-	$(BIN)/f2l render-faces --out $(EVAL_HELDOUT)/pbr --n $(EVAL_HELDOUT_N) --seed 1 --sunsky-fraction 0 --maps held-out --json
+	$(BIN)/f2l eval render-faces --out $(EVAL_HELDOUT)/pbr --n $(EVAL_HELDOUT_N) --seed 1 --sunsky-fraction 0 --maps held-out --json
 	$(BIN)/f2l fit-faces $(EVAL_HELDOUT)/pbr/photos --out $(EVAL_HELDOUT)/fitted --gt-probes $(EVAL_HELDOUT)/pbr/probes --json
-	$(BIN)/f2l twin-geometry $(EVAL_HELDOUT)/fitted --render $(EVAL_HELDOUT)/pbr --out $(EVAL_HELDOUT)/true_geometry --json
+	$(BIN)/f2l eval twin-geometry $(EVAL_HELDOUT)/fitted --render $(EVAL_HELDOUT)/pbr --out $(EVAL_HELDOUT)/true_geometry --json
 	$(BIN)/f2l estimate $(EVAL_HELDOUT)/fitted $(MODELS) --out $(EVAL_HELDOUT)/est --json
 	$(BIN)/f2l estimate $(EVAL_HELDOUT)/true_geometry $(MODELS) --out $(EVAL_HELDOUT)/est_true_geometry --json
-	$(BIN)/f2l eval-real $(EVAL_HELDOUT)/pbr --est $(EVAL_HELDOUT)/est --est "true geometry=$(EVAL_HELDOUT)/est_true_geometry" \
+	$(BIN)/f2l eval real $(EVAL_HELDOUT)/pbr --est $(EVAL_HELDOUT)/est --est "true geometry=$(EVAL_HELDOUT)/est_true_geometry" \
 		--out $(EVAL_HELDOUT) --held-out $(FIT_TRUTH)
 
 # The face fit's share split into normals and occluders (docs/results/eval_real.md "The face fit's share"): sunsky
@@ -172,7 +172,7 @@ eval-real-heldout: $(STAMP)
 # the skin's gloss); table in
 # build/eval_real/geometry_share.md. Needs `make eval-real` first (31 min on 2 cores).
 eval-real-geometry: $(STAMP)
-	$(BIN)/f2l eval-real-geometry $(EVAL_REAL) -m sunsky -m ae
+	$(BIN)/f2l eval geometry $(EVAL_REAL) -m sunsky -m ae
 
 # The search's share of the sun error, or the objective's (docs/results/eval_real.md "Does the photo prefer the
 # truth?"): sunsky on every clear face, on the fitted mesh, the true one and an ideal photo (f2l's
@@ -180,7 +180,7 @@ eval-real-geometry: $(STAMP)
 # (with and without the light prior), the elevation profile off; table in
 # build/eval_real/search_share.md. Needs `make eval-real` first (12 min on 2 cores).
 eval-real-search: $(STAMP)
-	$(BIN)/f2l eval-real-search $(EVAL_REAL) -m sunsky
+	$(BIN)/f2l eval search $(EVAL_REAL) -m sunsky
 
 # Ablations (docs/results/eval_real.md "Where the error comes from"): the first EVAL_ABL_N cases of eval-real
 # re-rendered with one thing taken away each (same people, poses, cameras and skies), then the same
@@ -190,12 +190,12 @@ ABLATIONS := no-specular:--no-specular direct-only:--max-depth=2 canonical-head:
 eval-real-ablations: $(STAMP)
 	for pair in $(ABLATIONS); do \
 		name=$${pair%%:*}; flag=$${pair#*:}; dir=$(EVAL_REAL)/ablations/$$name; \
-		$(BIN)/f2l render-faces --out $$dir/pbr --n $(EVAL_ABL_N) --seed 0 $$flag --json || exit 1; \
+		$(BIN)/f2l eval render-faces --out $$dir/pbr --n $(EVAL_ABL_N) --seed 0 $$flag --json || exit 1; \
 		$(BIN)/f2l fit-faces $$dir/pbr/photos --out $$dir/fitted --gt-probes $$dir/pbr/probes --json || exit 1; \
 		$(BIN)/f2l estimate $$dir/fitted $(MODELS) --out $$dir/est --json || exit 1; \
-		$(BIN)/f2l eval-real $$dir/pbr --est $$dir/est --out $$dir > /dev/null || exit 1; \
+		$(BIN)/f2l eval real $$dir/pbr --est $$dir/est --out $$dir > /dev/null || exit 1; \
 	done
-	$(BIN)/f2l eval-real-ablations $(EVAL_REAL) --n $(EVAL_ABL_N)
+	$(BIN)/f2l eval ablations $(EVAL_REAL) --n $(EVAL_ABL_N)
 
 # Re-create the shipped outdoor HDR maps (f2l/render/data/hdri) from the npm package.
 hdri-import: $(STAMP)

@@ -1,4 +1,4 @@
-"""``f2l bench``: error versus run time of the installed lighting models on synthetic faces.
+"""``f2l dev bench``: error versus run time of the installed lighting models on synthetic faces.
 
 For each face (≈10k pixels at image_size 128, 64x128 grid by default) it times the transport build
 (Embree visibility, adaptive and exact) once, then each model's estimate split into precompute
@@ -205,7 +205,7 @@ def _plot(summary: dict, path: Path) -> None:
         ax.set_title(metric, fontsize=9)
         ax.grid(alpha=0.3)
     axes.ravel()[-1].axis("off")
-    fig.suptitle("f2l bench: error vs run time (synthetic faces)")
+    fig.suptitle("f2l dev bench: error vs run time (synthetic faces)")
     fig.tight_layout()
     tmp = path.with_name(path.name + ".tmp.png")
     fig.savefig(tmp, dpi=90)

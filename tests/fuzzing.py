@@ -295,7 +295,7 @@ def _read_shard(path: Path):
 
 # -- commands: the same mutations through the CLI, in this process ------------------------------------
 COMMAND_EXIT_CODES = (0, 1, 4)
-"""What a batch command may exit with on bad input (f2l.cli_support.exit_for): never 2 (usage)
+"""What a batch command may exit with on bad input (f2l.cli.common.exit_for): never 2 (usage)
 for an input that is merely bad, never a traceback."""
 
 
@@ -355,7 +355,7 @@ def _make_probe_folder(folder: Path) -> Path:
 
 
 def _fit_probe(path: Path):
-    summary = _invoke(["fit-probe", path.parent, "-m", "sh9", "--grid", "16x32", "--out", path.parents[1] / "fitted"])
+    summary = _invoke(["eval", "fit-probe", path.parent, "-m", "sh9", "--grid", "16x32", "--out", path.parents[1] / "fitted"])
     if summary.get("ok", 0) < 1:
         raise Unusable(f"fit-probe lost the good probe: {str(summary)[:300]}")
 

@@ -329,7 +329,7 @@ def _records(out: Path):
 
 
 def _cli(tree: Path, work: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "f2l.pipeline.cli", str(tree / "raw"), "--work", str(work),
+    return [sys.executable, "-m", "f2l.cli.build", str(tree / "raw"), "--work", str(work),
             "--out", str(out), "--pipeline", str(tree / "pipeline.toml"), "--json"]
 
 
@@ -424,7 +424,7 @@ def test_lock_stops_a_second_build(tree, tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from f2l.pipeline.cli import build_dataset_cmd
+    from f2l.cli.build import build_dataset_cmd
 
     work, out = tmp_path / "work", tmp_path / "out"
     holder = subprocess.Popen(

@@ -187,7 +187,7 @@ def test_render_faces_without_the_extra_fails_cleanly(tmp_path, missing):
 
     code = (f"import sys; sys.modules[{missing!r}] = None; sys.argv = ['f2l'] + sys.argv[1:]; "
             "from f2l.cli import main; main()")
-    proc = subprocess.run([sys.executable, "-c", code, "render-faces", "--out", str(tmp_path / "pbr"), "--n", "1"],
+    proc = subprocess.run([sys.executable, "-c", code, "eval", "render-faces", "--out", str(tmp_path / "pbr"), "--n", "1"],
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert "pip install 'f2l[render]'" in proc.stderr and "Traceback" not in proc.stderr

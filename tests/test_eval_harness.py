@@ -92,7 +92,7 @@ def test_synth_cli_elevation_option(tmp_path):
     from f2l.cli import app
 
     runner = CliRunner()
-    args = ["synth", "--n", "3", "--seed", "4", "--grid", "16x32", "--image-size", "32",
+    args = ["eval", "synth", "--n", "3", "--seed", "4", "--grid", "16x32", "--image-size", "32",
             "--overcast-fraction", "0", "--json"]
     res = runner.invoke(app, [*args, "--out", str(tmp_path / "s"), "--sun-elevation-deg", "60:62"])
     assert res.exit_code == 0, res.output

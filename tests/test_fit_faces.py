@@ -289,7 +289,7 @@ def test_fit_face_rejects_too_small(grey_photo):
 @pytest.fixture(scope="module")
 def synth_truth(tmp_path_factory):
     truth = tmp_path_factory.mktemp("truth")
-    res = invoke("synth", "--out", truth, "--n", 2, "--seed", 7, "--image-size", 192, "--features",
+    res = invoke("eval", "synth", "--out", truth, "--n", 2, "--seed", 7, "--image-size", 192, "--features",
                  "--overcast-fraction", 0, "--grid", GRID, "--json")
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["faces"] == 2
@@ -309,7 +309,7 @@ def synth_fitted(synth_truth, tmp_path_factory):
 @pytest.fixture(scope="module")
 def compared(synth_fitted, synth_truth, tmp_path_factory):
     twin = tmp_path_factory.mktemp("twin")
-    res = invoke("compare-geometry", synth_fitted, "--truth", synth_truth, "--twin-out", twin, "--json")
+    res = invoke("eval", "compare-geometry", synth_fitted, "--truth", synth_truth, "--twin-out", twin, "--json")
     assert res.exit_code == 0, res.output
     return json.loads(res.stdout), twin
 

@@ -298,7 +298,7 @@ def test_fit_probe_folder_of_every_format_and_every_failure(tmp_path):
     _write_oiio(folder / "f_good.hdr", _sky(32, 64))
     _write_oiio(folder / "g_good.pfm", _sky(32, 64))
     (folder / "notes.txt").write_text("not a probe")
-    proc = subprocess.run([F2L, "fit-probe", str(folder), "-m", "sh9", "--grid", "16x32", "--out", str(out), "--json"],
+    proc = subprocess.run([F2L, "eval", "fit-probe", str(folder), "-m", "sh9", "--grid", "16x32", "--out", str(out), "--json"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 4, proc.stderr[-2000:]  # 4: some probes failed, the rest fitted
     assert "Traceback" not in proc.stderr

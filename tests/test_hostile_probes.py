@@ -193,7 +193,7 @@ def _build_cli(tree: Path, *extra: str):
     import typer
 
     import f2l.pipeline.run as run
-    from f2l.pipeline.cli import build_dataset_cmd
+    from f2l.cli.build import build_dataset_cmd
 
     real = run._ingest
     run._ingest = lambda *a, **k: _nan_pose(real(*a, **k))

@@ -106,7 +106,7 @@ def limited(inputs):
         ("make-probes", ["make-probes", str(tree), "--work", str(b / "work"), "--probe-height", "16"]),
         ("fit-faces", ["fit-faces", str(tree / "site" / "faces"), "--out", str(b / "fitted"), "--grid", "8x16"]),
         ("estimate", ["estimate", str(inputs["shards"]), "-m", "sh9", "--out", str(b / "est"), "--workers", "1"]),
-        ("fit-probe", ["fit-probe", str(inputs["probes"]), "-m", "sh9", "--grid", "16x32", "--out", str(b / "fp")]),
+        ("fit-probe", ["eval", "fit-probe", str(inputs["probes"]), "-m", "sh9", "--grid", "16x32", "--out", str(b / "fp")]),
         ("build-dataset", ["build-dataset", str(tree), "--work", str(b / "bwork"), "--out", str(b / "bout")]),
     ]
     results = {}

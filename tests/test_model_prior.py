@@ -303,10 +303,10 @@ def cli_run(tmp_path_factory, runner):
     tmp = tmp_path_factory.mktemp("cli")
     corpus, out, prior_path = tmp / "skies", tmp / "out", tmp / "p.json"
     runs = {
-        "corpus": runner.invoke(app, ["sky-corpus", "--out", str(corpus), "--n", "3", "--grid", "16x32", "--json"]),
-        "fit": runner.invoke(app, ["fit-probe", str(corpus), "--model", "sunsky", "--grid", "16x32",
+        "corpus": runner.invoke(app, ["prior", "sky-corpus", "--out", str(corpus), "--n", "3", "--grid", "16x32", "--json"]),
+        "fit": runner.invoke(app, ["eval", "fit-probe", str(corpus), "--model", "sunsky", "--grid", "16x32",
                                    "--out", str(out), "--json"]),
-        "prior": runner.invoke(app, ["build-prior", str(corpus), "--model", "sunsky", "--grid", "16x32",
+        "prior": runner.invoke(app, ["prior", "build", str(corpus), "--model", "sunsky", "--grid", "16x32",
                                      "--out", str(prior_path), "--components", "1", "--json"]),
     }
     return tmp, corpus, out, prior_path, runs
@@ -376,24 +376,24 @@ def test_cli_build_prior_and_use_the_prior(cli_run, monkeypatch):
 
 def test_cli_fit_probe_without_probes_fails(tmp_path, runner):
     (tmp_path / "notes.txt").write_text("no probes here")
-    res = runner.invoke(app, ["fit-probe", str(tmp_path), "--model", "sunsky", "--grid", "16x32", "--json"])
+    res = runner.invoke(app, ["eval", "fit-probe", str(tmp_path), "--model", "sunsky", "--grid", "16x32", "--json"])
     assert res.exit_code != 0
     assert "no .exr probes found" in res.stderr and str(tmp_path) in res.stderr
-    res = runner.invoke(app, ["build-prior", str(tmp_path), "--model", "sunsky", "--out", str(tmp_path / "p.json")])
+    res = runner.invoke(app, ["prior", "build", str(tmp_path), "--model", "sunsky", "--out", str(tmp_path / "p.json")])
     assert res.exit_code != 0 and "no .exr probes found" in res.stderr
     assert not (tmp_path / "p.json").exists()
 
 
 def test_cli_fit_probe_all_bad_and_unknown_model(tmp_path, runner):
     (tmp_path / "bad.exr").write_bytes(b"garbage")
-    res = runner.invoke(app, ["fit-probe", str(tmp_path), "--model", "sunsky", "--grid", "16x32", "--json"])
+    res = runner.invoke(app, ["eval", "fit-probe", str(tmp_path), "--model", "sunsky", "--grid", "16x32", "--json"])
     assert res.exit_code == 1
     summary = json.loads(res.stdout)
     assert summary["ok"] == 0 and summary["errors"] == 1
-    res = runner.invoke(app, ["build-prior", str(tmp_path), "--model", "sunsky", "--grid", "16x32",
+    res = runner.invoke(app, ["prior", "build", str(tmp_path), "--model", "sunsky", "--grid", "16x32",
                               "--out", str(tmp_path / "p.json"), "--json"])
     assert res.exit_code != 0 and "no probe could be fitted" in res.stderr and "bad.exr" in res.stderr
-    res = runner.invoke(app, ["fit-probe", str(tmp_path), "--model", "no-such-model", "--json"])
+    res = runner.invoke(app, ["eval", "fit-probe", str(tmp_path), "--model", "no-such-model", "--json"])
     assert res.exit_code != 0 and "no-such-model" in res.stderr
 
 
@@ -439,7 +439,7 @@ def test_cli_build_prior_skips_bad_probes_and_reads_every_hdr_format(tmp_path, r
     (corpus / "sky_0001.json").write_text('{"kind": "clear", "sun_direction": [0, 0, 0]}')  # malformed side file
     (corpus / "notes.txt").write_text("not a probe")
     prior_path = tmp_path / "p.json"
-    res = runner.invoke(app, ["build-prior", str(corpus), "--model", "sunsky", "--grid", "16x32",
+    res = runner.invoke(app, ["prior", "build", str(corpus), "--model", "sunsky", "--grid", "16x32",
                               "--out", str(prior_path), "--components", "1", "--json"])
     assert res.exit_code == 4, res.output
     assert "Traceback" not in res.output

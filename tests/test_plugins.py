@@ -72,7 +72,7 @@ def test_plugin_own_tests_pass_with_f2l_fixtures(installed_plugins, tmp_path):
 
 def test_bench_reports_a_plugin_next_to_the_builtins(installed_plugins, tmp_path):
     out = tmp_path / "bench"
-    proc = subprocess.run(f2l_cmd("bench", "--faces", "2", "-m", "sunsky", "-m", "gradient_sun", "--grid", "32x64",
+    proc = subprocess.run(f2l_cmd("dev", "bench", "--faces", "2", "-m", "sunsky", "-m", "gradient_sun", "--grid", "32x64",
                                   "--image-size", "96", "--threads", "1", "--sun-skip-faces", "1", "--out", str(out)),
                           env=_env(installed_plugins), capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -312,23 +312,34 @@ def test_f2l_import_graph_has_no_cycles():
 
 
 def test_plugin_commands_join_the_cli_and_a_broken_one_says_why(tmp_path):
-    """``f2l.commands``: the built-in autoencoder's training commands come through it; a plugin's
-    command that fails to import is still listed and fails with the reason, the rest keep working."""
+    """``f2l.command_groups`` (a plugin's own group, as the built-in autoencoder's ``f2l ae``) and
+    ``f2l.commands`` (single commands): a plugin's group or command that fails to import is still
+    listed and fails with the reason, the rest keep working."""
     import os
 
-    (tmp_path / "cmd_plugin.py").write_text("def hello(name: str = 'sky') -> None:\n"
-                                            "    \"\"\"Say hello.\"\"\"\n    print(f'hello {name}')\n")
+    (tmp_path / "cmd_plugin.py").write_text(
+        "import typer\n"
+        "def hello(name: str = 'sky') -> None:\n    \"\"\"Say hello.\"\"\"\n    print(f'hello {name}')\n"
+        "app = typer.Typer(help='Tools of the sky plugin.')\n"
+        "@app.command('wave')\ndef wave(times: int = 1) -> None:\n    print('wave ' * times)\n")
     info = tmp_path / "cmd_plugin-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: cmd-plugin\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[f2l.commands]\nhello = cmd_plugin:hello\nbroken = no_such_mod_q:cmd\n")
+    (info / "entry_points.txt").write_text("[f2l.commands]\nhello = cmd_plugin:hello\nbroken = no_such_mod_q:cmd\n"
+                                           "[f2l.command_groups]\nskytools = cmd_plugin:app\n"
+                                           "brokengroup = no_such_mod_q:app\n")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
     help_text = subprocess.run(f2l_cmd("--help"), env=env, capture_output=True, text=True, timeout=120).stdout
-    assert all(c in help_text for c in ("train-ae", "ae-corpus", "hello", "broken"))
+    assert all(f" {c} " in help_text for c in ("ae", "skytools", "brokengroup", "hello", "broken"))
+    assert "ae-corpus" not in help_text  # the old names run, hidden
+    proc = subprocess.run(f2l_cmd("skytools", "wave", "--times", "2"), env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "wave wave" in proc.stdout, proc.stderr
     proc = subprocess.run(f2l_cmd("hello", "--name", "sun"), env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "hello sun" in proc.stdout, proc.stderr
     proc = subprocess.run(f2l_cmd("broken"), env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "command 'broken' (no_such_mod_q:cmd) failed to load" in proc.stderr
+    proc = subprocess.run(f2l_cmd("brokengroup"), env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "command 'brokengroup' (no_such_mod_q:app) failed to load" in proc.stderr
 
 
 def test_bench_keeps_going_past_a_refused_or_failing_plugin(bad_site, tmp_path):

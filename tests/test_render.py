@@ -149,7 +149,7 @@ def test_render_faces_tiny_case_resumes_and_ablations_keep_the_case(tmp_path):
     from f2l.render.dataset import RenderOptions, draw_case
 
     out = tmp_path / "pbr"
-    cmd = [sys.executable, "-m", "f2l.cli", "render-faces", "--out", str(out), "--n", "1", "--seed", "3",
+    cmd = [sys.executable, "-m", "f2l.cli", "eval", "render-faces", "--out", str(out), "--n", "1", "--seed", "3",
            "--image-px", "96", "--spp", "4", "--json"]
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr
@@ -214,9 +214,9 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
         return proc.stdout
 
     pbr, fitted, twins = tmp_path / "pbr", tmp_path / "fitted", tmp_path / "twins"
-    run("render-faces", "--out", pbr, "--n", "2", "--seed", "0", "--image-px", "256", "--spp", "16", "--json")
+    run("eval", "render-faces", "--out", pbr, "--n", "2", "--seed", "0", "--image-px", "256", "--spp", "16", "--json")
     run("fit-faces", pbr / "photos", "--out", fitted, "--gt-probes", pbr / "probes", "--json", "--no-overlays")
-    twin = json.loads(run("twin-geometry", fitted, "--render", pbr, "--out", twins, "--json"))
+    twin = json.loads(run("eval", "twin-geometry", fitted, "--render", pbr, "--out", twins, "--json"))
     assert twin["twins"] == 2
     from pathlib import Path
 
@@ -229,7 +229,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
         assert abs(np.median(depth) - meta["settings"]["camera_distance_cm"]) < 12.0
     run("estimate", fitted, "-m", "sh9", "--out", tmp_path / "est", "--json")
     run("estimate", twins, "-m", "sh9", "--out", tmp_path / "est_twin", "--json")
-    text = run("eval-real", pbr, "--est", tmp_path / "est", "--est", f"true geometry={tmp_path / 'est_twin'}",
+    text = run("eval", "real", pbr, "--est", tmp_path / "est", "--est", f"true geometry={tmp_path / 'est_twin'}",
                "--out", tmp_path / "report")
     md = (tmp_path / "report" / "eval_real.md").read_text()
     for needed in ("uniform sky", "SH9 oracle", "SH25 oracle", "| sh9 |", "sh9 (true geometry)",
@@ -263,7 +263,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert "Does the photo prefer the truth?" in md
     # a set held out from tuning (`--held-out`): one table over every case, no tuning part
     # ... with sunsky fitted to each true probe (its family's oracle), cached for the next run
-    run("eval-real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out", "--fit-truth", "sunsky")
+    run("eval", "real", pbr, "--est", tmp_path / "est", "--out", tmp_path / "held_out", "--held-out", "--fit-truth", "sunsky")
     held = (tmp_path / "held_out" / "eval_real.md").read_text()
     assert "All cases, held out from tuning (2 cases" in held and "Tuning part" not in held
     assert "Breakdowns (all cases)" in held
@@ -272,7 +272,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     with open(tmp_path / "held_out" / "eval_real_rows.csv") as fh:
         fits = [r for r in csv.DictReader(fh) if r["method"] == "sunsky fitted to the truth"]
     assert len(fits) == 2 and all(0.0 <= float(r["MAE (s)"]) < 0.5 and float(r["runtime_s"]) > 0 for r in fits)
-    proc = subprocess.run([*f2l, "eval-real", str(pbr), "--est", str(tmp_path / "est"), "--out", str(tmp_path / "x"),
+    proc = subprocess.run([*f2l, "eval", "real", str(pbr), "--est", str(tmp_path / "est"), "--out", str(tmp_path / "x"),
                            "--fit-truth", "no-such-model"], capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0 and "--fit-truth no-such-model" in proc.stderr
     # the geometry share on the same folder layout as make eval-real: seven variants per face; the
@@ -282,7 +282,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     eval_dir.mkdir()
     for name, src in (("pbr", pbr), ("fitted", fitted), ("true_geometry", twins)):
         (eval_dir / name).symlink_to(src)
-    share = run("eval-real-geometry", eval_dir, "-m", "sh9", "--threads", "1")
+    share = run("eval", "geometry", eval_dir, "-m", "sh9", "--threads", "1")
     from f2l.render.geometry_share import VARIANTS
 
     assert all(f"| sh9 | {v} |" in share for v in VARIANTS)
@@ -301,7 +301,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
 
     clear = {r["case"] for r in rows if r["sky_kind"] == "clear"}
     assert len(clear) == 2  # seed 0's first two cases (esplanade)
-    table = run("eval-real-search", eval_dir, "-m", "sunsky", "--threads", "1")
+    table = run("eval", "search", eval_dir, "-m", "sunsky", "--threads", "1")
     assert all(f"| sunsky | {g} | {v} |" in table for g in GEOMETRIES for v in SEARCH_VARIANTS)
     search_rows = json.loads((eval_dir / "search_share_rows.json").read_text())
     assert len(search_rows) == len(clear) * len(GEOMETRIES) * len(SEARCH_VARIANTS)
@@ -312,7 +312,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     held = search_table(search_rows, held_out=True)
     assert "| all cases |" in held.splitlines()[0] and "tuning part" not in held
     assert held.count("lower objective 2/2") + held.count("lower objective 1/2") + held.count("lower objective 0/2") == 3
-    proc = subprocess.run([*f2l, "eval-real-search", str(eval_dir), "-m", "sh9"], capture_output=True, text=True,
+    proc = subprocess.run([*f2l, "eval", "search", str(eval_dir), "-m", "sh9"], capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode != 0 and "not a compact-sun model" in proc.stderr
 

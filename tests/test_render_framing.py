@@ -126,7 +126,7 @@ def test_accuracy_by_face_width_joins_truth_records_and_estimates(tmp_path):
     metrics = row["estimates"]["sh9"]
     assert np.isfinite(metrics["MAE (s)"]) and 0 <= metrics["Sun-ang (°)"] <= 180
     assert "| 80-160 | 1 | 1 | 1 | 1 |" in result["table"] and "| all | 1 |" in result["table"]
-    res = runner.invoke(app, ["eval-framings", str(render), "--fitted", str(tmp_path / "fitted"), "--est",
+    res = runner.invoke(app, ["eval", "framings", str(render), "--fitted", str(tmp_path / "fitted"), "--est",
                               str(tmp_path / "est"), "--out", str(tmp_path / "report")])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "report" / "accuracy_by_face_width.md").read_text().strip() == result["table"]

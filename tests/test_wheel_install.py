@@ -128,7 +128,7 @@ def test_synth_estimate_evaluate_build_dataset_from_elsewhere(venv, tmp_path):
     from tests.test_build_dataset import make_tree
 
     work, f2l = venv["work"], venv["f2l"]
-    _run(venv, f2l, "synth", "--out", "faces", "--n", "2", "--grid", "16x32", "--image-size", "64", "--seed", "3",
+    _run(venv, f2l, "eval", "synth", "--out", "faces", "--n", "2", "--grid", "16x32", "--image-size", "64", "--seed", "3",
          "--json")
     proc = _run(venv, f2l, "estimate", "faces", "-m", "sunsky", "--out", "est", "--workers", "1", "--json")
     summary = json.loads(proc.stdout.strip().splitlines()[-1])

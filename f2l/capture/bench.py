@@ -1,4 +1,4 @@
-"""``f2l bench-capture``: ingest + merge run time against a bare LibRaw decode of the same files,
+"""``f2l dev bench-capture``: ingest + merge run time against a bare LibRaw decode of the same files,
 and peak memory as the number of brackets grows.
 
 A synthetic capture tree (``brackets`` × ``frames`` real DNGs of ``megapixels`` each, written by

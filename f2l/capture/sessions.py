@@ -1,5 +1,5 @@
 """Capture sessions written as real DNG files, with what a photographer would write in
-``session.toml``, for tests and ``f2l bench-capture``: they disagree with f2l's conveniences.
+``session.toml``, for tests and ``f2l dev bench-capture``: they disagree with f2l's conveniences.
 
 - :func:`write_fisheye_session`: an 8 mm equisolid circular fisheye on a 36 x 24 mm sensor
   (1536 x 1024 px; image circle radius 2 f sin 45° = 482.7 px, smaller than the short side),

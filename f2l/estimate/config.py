@@ -53,7 +53,7 @@ class EstimatorConfig:
     sun_max_pixels: int | None = 2048  # evenly spaced usable pixels for sun models
     sun_all_starts_iters: int = 4  # L-BFGS iterations on every start, then the best one alone
     # after those, a solution whose sun share (_sun_share) is below this is overcast: the rest of
-    # the fit skips the exact sun core (f2l bench shows the time saved and the error cost); 0 = never
+    # the fit skips the exact sun core (f2l dev bench shows the time saved and the error cost); 0 = never
     sun_core_min_share: float = 0.02
     # sun models (compact-sun): the sun's elevation profile. After the fit, copies of it with the
     # sun's elevation pinned at each of these (deg) are refined for sun_profile_iters L-BFGS
@@ -82,7 +82,7 @@ class EstimatorConfig:
     # eval-real` the compact-sun model's mean Sun-ang 15.4 -> 13.0 deg, the latent-sky model's 21.2 ->
     # 19.8; on the reporting half the former's median 12.9 -> 11.1 (mean unchanged), the latter's mean
     # 22.3 -> 21.4; +18-20% time in
-    # `f2l bench`. docs/experiments/accuracy_issue16.md "What each change bought".
+    # `f2l dev bench`. docs/experiments/accuracy_issue16.md "What each change bought".
     clipped_bounds: bool = True
     clipped_level: float = 0.95  # a channel at or above this (linear, 1 = white) counts as clipped
     # sun models (compact-sun): the skin's specular highlight of the sun in the forward model

@@ -48,7 +48,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
 
     ``sun_starts`` ((k, 3) unit directions in the probe's frame; ``compact-sun`` models only): start
     the fit from these suns in place of the global search's candidates, each with the weights of
-    the search's best one. A diagnostic (``f2l eval-real-search`` starts fits at the true sun)."""
+    the search's best one. A diagnostic (``f2l eval search`` starts fits at the true sun)."""
     cfg = config or EstimatorConfig()
     if isinstance(model, LatentSky) and sun_starts is None:  # decoded latent skies: batched start search
         return estimate_latent_sky(obs, model, cfg)  # (f2l.estimate.latent)

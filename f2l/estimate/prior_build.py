@@ -1,7 +1,7 @@
-"""Build a model's GMM prior from a folder of lat-long sky probes (``f2l build-prior``), and the
-project's default training corpus (``f2l sky-corpus``).
+"""Build a model's GMM prior from a folder of lat-long sky probes (``f2l prior build``), and the
+project's default training corpus (``f2l prior sky-corpus``).
 
-Default corpus: ``f2l sky-corpus --out skies/ --n 400 --seed 0`` writes 400 float32 EXR probes
+Default corpus: ``f2l prior sky-corpus --out skies/ --n 400 --seed 0`` writes 400 float32 EXR probes
 (64 x 128) from :func:`f2l.synth.skies.random_sky`: CIE 2003 standard clear skies (type 12,
 Perez form with the CIE's coefficients, not those of a model's own sky formula, so a prior is not fitted
 to its own model) with a vMF sun (κ = 8192) whose colour and intensity follow Rayleigh + aerosol

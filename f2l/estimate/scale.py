@@ -1,4 +1,4 @@
-"""``f2l scale-report``: build and estimate synthetic datasets of several sizes and report
+"""``f2l dev scale-report``: build and estimate synthetic datasets of several sizes and report
 faces/minute, per-stage time and peak memory, to show that memory stays flat as data grows.
 
 Each size runs in a fresh child process (so one size's memory never counts against another):

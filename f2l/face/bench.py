@@ -1,4 +1,4 @@
-"""``f2l bench-faces``: run time of face fitting per stage, next to its geometric error.
+"""``f2l dev bench-faces``: run time of face fitting per stage, next to its geometric error.
 
 Synthetic photos (painted features, EXIF focal length, :func:`f2l.synth.dataset.write_synthetic_shards`)
 are rendered first (not timed), then each is fitted the way ``f2l fit-faces`` does it, timing

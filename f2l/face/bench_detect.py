@@ -1,4 +1,4 @@
-"""``f2l bench-detect``: face detection's recall by face width, false detections, and time by photo size.
+"""``f2l dev bench-detect``: face detection's recall by face width, false detections, and time by photo size.
 
 Real photographs, composited as people frame them (scikit-image's data, BSD-3; the astronaut is a
 NASA portrait, public domain; the backgrounds hold no face):
@@ -200,7 +200,7 @@ def run_detect_bench(photos: int = 60, negatives: int = 100, sizes_mp: tuple[flo
 
 
 def rendered_recall(folders, min_face_px: float = 40.0, detector: str = "full_range") -> dict:
-    """Detection recall on ``f2l render-faces --framing …`` sets (their ``meta/*.json`` hold every
+    """Detection recall on ``f2l eval render-faces --framing …`` sets (their ``meta/*.json`` hold every
     true face box): by face-width band and by framing. A true face counts when it lies wholly in
     the frame and is at least ``min_face_px`` wide; it is found when a kept face's detection box
     overlaps its box by IoU > 0.3 (the true box runs chin to mid-forehead, BlazeFace's a little

@@ -1,6 +1,6 @@
-"""Fitted face geometry against the ground truth of synthetic photos (``f2l compare-geometry``).
+"""Fitted face geometry against the ground truth of synthetic photos (``f2l eval compare-geometry``).
 
-Records pair up by photo: ``f2l synth`` writes ``photos/<face_id>.png``, so a fitted record's
+Records pair up by photo: ``f2l eval synth`` writes ``photos/<face_id>.png``, so a fitted record's
 source-file stem is the ground-truth face id. For each fitted record the *true-geometry twin*
 keeps everything the fit measured (pixels, observed RGB, mask) and swaps the geometry for the
 truth: the working pixels' camera rays (``meta["crop"]`` maps working pixel (r, c) to photo

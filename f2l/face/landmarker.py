@@ -46,7 +46,7 @@ DETECTOR_SHA256 = "99bf9494d84f50acc6617d89873f71bf6635a841ea699c17cb3377f9507cf
 DETECTOR_ENV_VAR = "F2L_FACE_DETECTOR"
 MIN_FACE_PX = 40.0
 # The landmark model's face presence a detection must reach to count as a face. Measured with
-# `f2l bench-detect`: true faces on real-photo composites >= 0.99999998; on face-free photos the
+# `f2l dev bench-detect`: true faces on real-photo composites >= 0.99999998; on face-free photos the
 # detector's hits reach up to 0.87 on the first crop and more with the retried crops, and 0.95
 # keeps 200 of them at 0 false faces (docs/experiments/face_detection.md).
 MIN_PRESENCE = 0.95

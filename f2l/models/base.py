@@ -19,7 +19,7 @@ Contract
 - optional ``intensity_params``: indices of parameters radiance is linear in (fit-probe fits
   their logarithm); ``probe_starts(probe_flat)``: starts for fitting a probe (None: the
   ``initial_points()``); ``prior_features(params)`` / ``prior_feature_names``: what
-  ``f2l build-prior`` fits its GMM on (None: the model has no GMM prior).
+  ``f2l prior build`` fits its GMM on (None: the model has no GMM prior).
 
 Capabilities (``f2l.models.capabilities``) are typed mixins a model inherits to get the
 estimator's fast paths: ``LinearRadiance`` (linear in its parameters), ``SunAngles`` (the sun's
@@ -88,7 +88,7 @@ class LightingModel(ABC):
     prior_feature_names: ClassVar[list[str] | None] = None
 
     def prior_features(self, params: np.ndarray) -> np.ndarray | None:
-        """(n, P) -> (n, F) features a GMM prior is fitted on (``f2l build-prior``); None: no prior."""
+        """(n, P) -> (n, F) features a GMM prior is fitted on (``f2l prior build``); None: no prior."""
         return None
 
     def probe_starts(self, probe_flat: np.ndarray) -> np.ndarray | None:

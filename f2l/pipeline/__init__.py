@@ -6,7 +6,7 @@ face-record shards paired with ground-truth probes, reproducibly, incrementally 
 - :mod:`f2l.pipeline.plan` — what each session needs and what is left out;
 - :mod:`f2l.pipeline.probes`, :mod:`f2l.pipeline.faces`, :mod:`f2l.pipeline.assemble` — stages;
 - :mod:`f2l.pipeline.publish`, :mod:`f2l.pipeline.card` — the output folder and its card;
-- :mod:`f2l.pipeline.build` — :func:`build_dataset`; :mod:`f2l.pipeline.cli` — the command.
+- :mod:`f2l.pipeline.build` — :func:`build_dataset`; the command is :mod:`f2l.cli.build`.
 """
 
 from f2l.pipeline.build import BuildSummary, build_dataset

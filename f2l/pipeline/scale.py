@@ -1,4 +1,4 @@
-"""``f2l scale-report --build``: ``build-dataset`` run time and peak memory, local against Ray, as
+"""``f2l dev scale-report --build``: ``build-dataset`` run time and peak memory, local against Ray, as
 the number of face photos grows.
 
 The capture tree: ``faces`` distinct face photos (scikit-image's astronaut, public domain, each

@@ -1,4 +1,4 @@
-"""``f2l render-faces``: photos of heads f2l did not model, path-traced under real and physical skies.
+"""``f2l eval render-faces``: photos of heads f2l did not model, path-traced under real and physical skies.
 
 Each case ``pbr-s<seed>-<index>`` draws, from its own seeded streams (so an ablation that changes
 one switch re-renders *the same* person, pose, camera and sky):
@@ -231,7 +231,7 @@ def _exif(focal_px: float):
     from f2l.synth.dataset import camera_exif
 
     exif = camera_exif(focal_px)
-    exif[0x010F] = "f2l render-faces"
+    exif[0x010F] = "f2l eval render-faces"
     exif[0x0110] = "Mitsuba 3 path tracer, pinhole"
     return exif
 

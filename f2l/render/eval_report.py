@@ -1,5 +1,5 @@
-"""The markdown report of ``f2l eval-real`` (``eval_real.md``, ``eval_real_rows.csv``) and the
-ablation table of ``f2l eval-real-ablations``, from the rows :func:`f2l.render.evaluate.evaluate_real`
+"""The markdown report of ``f2l eval real`` (``eval_real.md``, ``eval_real_rows.csv``) and the
+ablation table of ``f2l eval ablations``, from the rows :func:`f2l.render.evaluate.evaluate_real`
 scores.
 
 - :func:`summary_table`: the seven §5.1 metrics per method, median Sun-ang and s / face;

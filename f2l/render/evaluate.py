@@ -1,4 +1,4 @@
-"""``f2l eval-real``'s scoring: the paper's Table 2 rows on ``f2l render-faces`` cases, with baselines.
+"""``f2l eval real``'s scoring: the paper's Table 2 rows on ``f2l eval render-faces`` cases, with baselines.
 
 This module scores one row per (method, case); :mod:`f2l.render.eval_report` writes the tables.
 

@@ -1,4 +1,4 @@
-"""``f2l render-faces --framing half|full|group``: path-traced photos framed as people frame them.
+"""``f2l eval render-faces --framing half|full|group``: path-traced photos framed as people frame them.
 
 The portrait framing (:mod:`f2l.render.dataset`) puts one head at 35–55% of a square frame. Real
 outdoor photos are mostly wider; here each case draws, from its own seeded streams:

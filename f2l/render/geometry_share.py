@@ -1,8 +1,8 @@
-"""The face fit's share of the error, split into normals and occluders (``f2l eval-real-geometry``),
+"""The face fit's share of the error, split into normals and occluders (``f2l eval geometry``),
 and what is left on an ideal photo.
 
 For each fitted face of a ``make eval-real`` folder that has a true-geometry twin
-(``f2l twin-geometry``), the same photo pixels (those both meshes cover) are estimated with the
+(``f2l eval twin-geometry``), the same photo pixels (those both meshes cover) are estimated with the
 normals and the visibility taken from different meshes:
 
 ============================================  ==========================================================

@@ -1,4 +1,4 @@
-"""Real outdoor HDR maps for the realistic face renderer (``f2l render-faces``).
+"""Real outdoor HDR maps for the realistic face renderer (``f2l eval render-faces``).
 
 The maps are ten CC0 lat-long EXRs of the npm package ``@pmndrs/assets`` 1.7.0
 (``hdri/NAME.exr.js``: ``export default 'data:application/exr;base64,…'``; 512 × 256, half float,

@@ -1,4 +1,4 @@
-"""The skin's glossy highlight of a whole probe, for ideal photos (``f2l eval-real-geometry``).
+"""The skin's glossy highlight of a whole probe, for ideal photos (``f2l eval geometry``).
 
 A face pixel with unit normal ``n``, view direction ``v`` (towards the camera at the origin of the
 record's camera frame) and visibility ``V`` on the probe's grid reflects, on top of its diffuse

@@ -9,7 +9,7 @@ probe ``l`` (DESIGN convention, ground rows included), the Lambertian shading of
 
 over the record's usable pixels (:func:`f2l.estimate.observation.usable_pixels`: skin mask, not
 clipped, not black). Each ``k_c`` is the s-weighted median of ``o_pc / s_pc`` (the exact L1
-minimiser); r is scale-invariant in ``l`` and in the photo. ``f2l eval-real`` scores both the
+minimiser); r is scale-invariant in ``l`` and in the photo. ``f2l eval real`` scores both the
 estimate's probe and the truth through the same record: where an estimate's sun is far off and its
 residual is no larger than the truth's, the photo (as f2l reads it) does not point at the true
 sun, and no search or optimiser change can fix that case; only the forward model, the face's

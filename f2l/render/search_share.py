@@ -1,9 +1,9 @@
-"""The search's share of the sun error, or the objective's (``f2l eval-real-search``).
+"""The search's share of the sun error, or the objective's (``f2l eval search``).
 
 A compact-sun fit can miss the true sun for two reasons: its starts never reach the true sun's
 basin (the search's fault), or its objective (data term and priors) is lower somewhere else (the
 forward model's or the priors' fault, which no search fixes). For each clear case of a
-``make eval-real`` folder, on the fitted mesh, on the true one (``f2l twin-geometry``) and on an
+``make eval-real`` folder, on the fitted mesh, on the true one (``f2l eval twin-geometry``) and on an
 ideal photo on the true mesh (f2l's own Lambertian render of the true probe,
 :func:`f2l.render.photo_residual.ideal_photo`, read without the skin's gloss: what is left there
 is the lighting model's family and its priors), each model is fitted three ways, all without the

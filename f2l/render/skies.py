@@ -1,15 +1,15 @@
-"""A corpus of physically based clear skies for priors (``f2l render-skies``; needs ``f2l[render]``).
+"""A corpus of physically based clear skies for priors (``f2l eval render-skies``; needs ``f2l[render]``).
 
 Each sky is Mitsuba 3's Hosek–Wilkie ``sunsky`` over a Lambertian ground, made into a probe
-exactly as ``f2l render-faces`` makes its ground truth (:func:`f2l.render.scene.ground_truth_probe`:
+exactly as ``f2l eval render-faces`` makes its ground truth (:func:`f2l.render.scene.ground_truth_probe`:
 the sky's area average per texel, the ground lit by sky and sun below the horizon, the sun's
 disc power in the texel of its direction). Random draws, independent of any evaluation set's:
 sun elevation uniform in 5–80°, azimuth uniform, turbidity uniform in 2–8, ground albedo uniform
-in 0.1–0.3 (the ranges of ``render-faces``). Files follow ``f2l sky-corpus``: ``sky_0000.exr``, …
+in 0.1–0.3 (the ranges of ``render-faces``). Files follow ``f2l prior sky-corpus``: ``sky_0000.exr``, …
 (float32, the DESIGN lat-long convention) with a JSON side file holding the kind ("clear", or
 "overcast" where the §5.1 heuristic says so), the sun direction and the draw.
 
-``f2l build-prior`` takes this folder next to the CIE corpus of ``f2l sky-corpus``: the CIE skies
+``f2l prior build`` takes this folder next to the CIE corpus of ``f2l prior sky-corpus``: the CIE skies
 carry f2l's own sun-colour model, these carry Hosek–Wilkie's measured-spectrum sun and sky colours.
 """
 

@@ -1,4 +1,4 @@
-"""Plots of the report and of ``f2l bench``: error against run time on a readable log axis."""
+"""Plots of the report and of ``f2l dev bench``: error against run time on a readable log axis."""
 
 from __future__ import annotations
 

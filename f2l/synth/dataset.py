@@ -1,4 +1,4 @@
-"""``f2l synth``: synthetic face records with ground-truth probes, written as shards.
+"""``f2l eval synth``: synthetic face records with ground-truth probes, written as shards.
 
 Each face is rendered by :func:`f2l.synth.render.make_synthetic_set` (deterministic from the seed)
 and stored as a :class:`f2l.io.shards.FaceRecord` plus two side files: the ground-truth probe

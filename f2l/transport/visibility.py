@@ -64,7 +64,7 @@ Methods
     band near its horizon that some neighbour does not face). Failure mode: a shadow narrower
     than the lattice step that misses all the neighbours; so reuse is used only when the
     median neighbour distance is at most ``MAX_LATTICE_STEP`` (1.2%) of the mesh's bbox
-    diagonal (a face of >= ~4.5k pixels). Measured on synthetic faces (``f2l bench``, MediaPipe
+    diagonal (a face of >= ~4.5k pixels). Measured on synthetic faces (``f2l dev bench``, MediaPipe
     canonical mesh of 14,368 triangles, 64 x 128, 2 threads): at 128 px (8.4k face pixels)
     0.49-0.50x the rays of the plain adaptive pass, 1.5-2.0 s instead of 2.5-3.2 s; bits
     differing from exact 0.7-1.3e-4; T l error under a sunny sky 1.9-2.7e-4 (plain adaptive

@@ -111,7 +111,7 @@ class AE(LatentSky, LightingModel):
         return FEATURE_NAMES
 
     def prior_features(self, params: np.ndarray) -> np.ndarray:
-        """(n, 65) -> (n, 63) z_shape (``f2l build-prior --model ae`` fits the GMM on these)."""
+        """(n, 65) -> (n, 63) z_shape (``f2l prior build --model ae`` fits the GMM on these)."""
         return np.atleast_2d(np.asarray(params, dtype=np.float64))[:, self.shape_slice]
 
     def prior_nll(self, params: torch.Tensor) -> torch.Tensor:

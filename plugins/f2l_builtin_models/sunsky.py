@@ -41,7 +41,7 @@ Timing (2-core Xeon VM, torch 2.13, 64 x 128 grid, batch 8, float64, kappa = 819
 radiance ~5 ms forward (median of runs 4.7-8 ms), ~14-17 ms forward + backward of a weighted
 sum; the sky is ~2 ms of the forward, the lobe ~2 ms (per-op overhead of small tensors). The
 machine has slow spells (up to ~15x). Measure with ``timeit`` on ``model.radiance`` of
-``torch.as_tensor(model.initial_points()[:8])``; ``f2l bench`` times whole estimates.
+``torch.as_tensor(model.initial_points()[:8])``; ``f2l dev bench`` times whole estimates.
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ def heldout_report(ae, cache, index: np.ndarray, batch: int = 64) -> dict:
 
 
 def _corpus_recipe(skies_dir) -> dict | None:
-    """The ``corpus.json`` of an ``f2l ae-corpus`` folder (the folder or its parent), if any."""
+    """The ``corpus.json`` of an ``f2l ae corpus`` folder (the folder or its parent), if any."""
     for d in (Path(skies_dir), Path(skies_dir).parent):
         f = d / "corpus.json"
         if f.is_file():

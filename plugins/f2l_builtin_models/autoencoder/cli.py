@@ -1,4 +1,5 @@
-"""CLI commands of the sky autoencoder (registered by ``f2l.cli``): ``f2l ae-corpus``, ``f2l train-ae``.
+"""The sky autoencoder's command group, ``f2l ae corpus`` and ``f2l ae train`` (entry-point group
+``f2l.command_groups``, name ``ae``; the names ``ae-corpus`` and ``train-ae`` still work for one release).
 
 Thin: option parsing, progress and exit codes; the work is in ``f2l_builtin_models.autoencoder.corpus`` / ``f2l_builtin_models.autoencoder.train``.
 """
@@ -10,7 +11,11 @@ import sys
 from pathlib import Path
 from typing import Optional
 
+from typing import Annotated
+
 import typer
+
+JsonOut = Annotated[bool, typer.Option("--json", help="Print one JSON summary on stdout, nothing else (no progress, no table).")]
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -27,7 +32,7 @@ def ae_corpus_cmd(
     split: list[str] = typer.Option(["train", "heldout"], "--split",
                                     help="Write only these splits (repeatable): 'heldout' alone gives the "
                                          "held-out skies of the same full corpus, for evaluation."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Write the autoencoder's sky corpus: Preetham clear skies (all sun elevations and turbidities),
     partly cloudy and overcast skies with procedural clouds (docs/ae.md)."""
@@ -72,7 +77,7 @@ def train_ae_cmd(
     threads: int = typer.Option(2, help="Torch threads (at most 2 on the project's machines)."),
     work_dir: Optional[Path] = typer.Option(None, "--work-dir", help="Caches of the encoded skies and the checkpoint (default: <stem>_train/ beside --out)."),
     restart: bool = typer.Option(False, "--restart", help="Ignore an existing checkpoint and train from scratch."),
-    json_out: bool = typer.Option(False, "--json", help="No progress bars; print the model card as JSON."),
+    json_out: JsonOut = False,
 ) -> None:
     """Train the sky autoencoder (resumable: rerun continues after the last finished epoch), then fit
     its latent GMM prior and write weights, prior, model card and loss curve."""
@@ -95,3 +100,9 @@ def train_ae_cmd(
         typer.echo(companion(out, "_card.md").read_text())
         typer.echo(f"wrote {out}, {companion(out, '_prior.json')}, {companion(out, '_card.json')}, "
                    f"{companion(out, '_card.md')}, {companion(out, '_loss.png')}")
+
+
+app = typer.Typer(help="The sky autoencoder: its sky corpus and its training (docs/ae.md).", no_args_is_help=True,
+                  add_completion=False)
+app.command("corpus")(ae_corpus_cmd)
+app.command("train")(train_ae_cmd)

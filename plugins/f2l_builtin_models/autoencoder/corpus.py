@@ -1,4 +1,4 @@
-"""The autoencoder's default sky corpus (``f2l ae-corpus``): physically based clear skies plus
+"""The autoencoder's default sky corpus (``f2l ae corpus``): physically based clear skies plus
 partly cloudy and overcast skies, written as float32 lat-long EXR probes with JSON side files.
 
 Each sky draws, in this order, from its own child of ``numpy.random.SeedSequence(seed)``:

@@ -1,6 +1,6 @@
 """Sky probes for the autoencoder: find, read, sun-centre, encode, and cache them on disk.
 
-``f2l train-ae`` streams a folder of HDR sky probes: lat-long ``.exr`` (float, any channel type
+``f2l ae train`` streams a folder of HDR sky probes: lat-long ``.exr`` (float, any channel type
 OpenEXR reads) or Radiance ``.hdr`` (RGBE, read by OpenCV), full sphere (W = 2H) or sky
 hemisphere (W = 4H), any resolution. Each is sun-centred and area-resampled to the 32 x 128 sky
 and encoded (:mod:`f2l_builtin_models.autoencoder.encoding`) one file at a time into a memory-mapped cache, so memory

@@ -1,4 +1,4 @@
-"""Fitting the sky autoencoder to an HDR probe (``f2l fit-probe --model ae``, paper Table 1).
+"""Fitting the sky autoencoder to an HDR probe (``f2l eval fit-probe --model ae``, paper Table 1).
 
 - AE_FF (variant ``ae_ff``): the feed-forward code theta_FF = (log s, encoder(e), phi_sun) of the
   probe's sun-centred, encoded sky (``AE.encode_probe``), decoded: no optimisation.
@@ -8,7 +8,7 @@
   z_0 - log s* (s* the probe's mean luminance), so the fit is the same for any exposure.
 
 Both are returned as one :class:`~f2l.estimate.probe_fit.ProbeFit` (the AE fit) whose
-``variants["ae_ff"]`` holds the feed-forward one; ``f2l fit-probe`` reports both.
+``variants["ae_ff"]`` holds the feed-forward one; ``f2l eval fit-probe`` reports both.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Training the sky autoencoder (``f2l train-ae``): denoising AE with a solid-angle-weighted L1 loss.
+"""Training the sky autoencoder (``f2l ae train``): denoising AE with a solid-angle-weighted L1 loss.
 
     loss = mean_batch [ sum_{c,h,w} w_h |f(e + n) - e|  +  lambda sum_{c,h,w} w_h (f(e + n) - e)^2 ],
     w_h = dOmega_h / (3 sum_{h,w} dOmega_h),   n ~ N(0, sigma^2), sigma = 0.01

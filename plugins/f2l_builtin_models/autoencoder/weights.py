@@ -12,7 +12,7 @@ truncated or foreign file (another network, another f2l version's layout) raises
 
 Companion files next to ``<name>.npz``: ``<name>_prior.json`` (the latent GMM prior, format
 ``f2l-gmm-prior/1``), ``<name>_card.json`` / ``<name>_card.md`` (the model card) and
-``<name>_loss.png`` (the loss curve), written by ``f2l train-ae``.
+``<name>_loss.png`` (the loss curve), written by ``f2l ae train``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""CLI layer of the independent evaluation renders (registered on the main app by :mod:`f2l.cli`):
+"""CLI layer of the independent evaluation renders (registered by :mod:`f2l.cli.app`):
 ``render-faces``, ``render-skies``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``,
 ``eval-real-search``, ``eval-real-ablations``."""
 
@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli_support import fail
+from f2l.cli.common import JsonOut, fail
 
 
 def render_faces_cmd(
@@ -27,7 +27,7 @@ def render_faces_cmd(
     sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
     maps: str = typer.Option("eval", help="Which real maps: eval (the seven of `make eval-real`) or held-out (city, sunrise, sunset: no default was chosen on them)."),
     framing: str = typer.Option("portrait", help="portrait (one head, 35-55% of a square frame), half (one person, head 12-25% of a 3:2 frame's long side), full (4-10%) or group (2-5 people, 5-14% each, one light); wider framings use --image-px as the long side (1280 suggested)."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups."""
     from f2l.render import RenderExtraMissing
@@ -62,9 +62,9 @@ def render_skies_cmd(
     out: Path = typer.Option(..., "--out", help="Output folder for the sky EXRs (+ JSON side files)."),
     n: int = typer.Option(100, "--n", help="Number of skies."),
     seed: int = typer.Option(0, help="Seed (sky i of a seed is the same whatever --n is)."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
-    """Write Hosek-Wilkie clear skies (Mitsuba 3) as 64x128 probes: a physically based corpus for `f2l build-prior`."""
+    """Write Hosek-Wilkie clear skies (Mitsuba 3) as 64x128 probes: a physically based corpus for `f2l prior build`."""
     from f2l.render import RenderExtraMissing
     from f2l.render.scene import mitsuba
     from f2l.render.skies import write_hosek_wilkie_corpus
@@ -78,10 +78,10 @@ def render_skies_cmd(
 
 
 def twin_geometry_cmd(
-    fitted: Path = typer.Argument(..., help="Shards written by `f2l fit-faces` from `f2l render-faces` photos."),
-    render: Path = typer.Option(..., "--render", help="The `f2l render-faces` folder the photos came from."),
+    fitted: Path = typer.Argument(..., help="Shards written by `f2l fit-faces` from `f2l eval render-faces` photos."),
+    render: Path = typer.Option(..., "--render", help="The `f2l eval render-faces` folder the photos came from."),
     out: Path = typer.Option(..., "--out", help="Output shard directory for the true-geometry twins."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Swap fitted face geometry for the renderer's true mesh (same pixels and observations)."""
     from f2l.render.evaluate import write_true_geometry_twins
@@ -93,7 +93,7 @@ def twin_geometry_cmd(
 
 
 def eval_real_cmd(
-    render: Path = typer.Argument(..., help="The `f2l render-faces` folder (meta/, probes/)."),
+    render: Path = typer.Argument(..., help="The `f2l eval render-faces` folder (meta/, probes/)."),
     est: list[str] = typer.Option(..., "--est", help="An `f2l estimate` output folder, as DIR (fitted geometry) or LABEL=DIR."),
     out: Path = typer.Option(..., "--out", help="Where eval_real.md and eval_real_rows.csv go."),
     held_out: bool = typer.Option(False, "--held-out", help="No tuning part: every case reports (a set no default was chosen on, e.g. `render-faces --maps held-out`)."),
@@ -185,11 +185,11 @@ def eval_real_ablations_cmd(
 
 
 def eval_framings_cmd(
-    render_dirs: list[Path] = typer.Argument(..., help="`f2l render-faces --framing ...` folders."),
+    render_dirs: list[Path] = typer.Argument(..., help="`f2l eval render-faces --framing ...` folders."),
     fitted: Path = typer.Option(..., "--fitted", help="`f2l fit-faces` of their photos (records + status table)."),
     est: Path = typer.Option(..., "--est", help="`f2l estimate` of the fitted records."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write the table (Markdown) and the per-face rows (JSON) here."),
-    json_out: bool = typer.Option(False, "--json", help="Print the per-face rows as JSON."),
+    json_out: JsonOut = False,
 ) -> None:
     """Accuracy against the face's size: detection, fitting and the §5.1 metrics per band of true face width (40-80, 80-160, 160-320, > 320 px) on framed render sets."""
     from f2l.render.framing import accuracy_by_face_width

@@ -1,4 +1,4 @@
-"""CLI layer of the capture stages (registered on the main app by :mod:`f2l.cli`)."""
+"""CLI layer of the capture stages (registered by :mod:`f2l.cli.app`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from f2l.cli_support import exit_for
+from f2l.cli.common import JsonOut, exit_for
 
 
 def ingest_cmd(
@@ -17,7 +17,7 @@ def ingest_cmd(
     bracket_gap_s: float = typer.Option(15.0, help="Frames further apart than this (s) are not one bracket."),
     detect_roles: bool = typer.Option(True, "--detect-roles/--no-detect-roles", help="Run the face/chart detectors on files no folder name or session.toml gives a role."),
     allow_outside: bool = typer.Option(False, "--allow-outside", help="Let a session.toml name files (a flat field) outside its session folder (absolute paths, '..', symlinks out), and read capture files that are symlinks out of ROOT. Refused by default."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Scan camera RAW, JPEG/PNG/TIFF and EXR/HDR files into WORK/captures.parquet (incremental).
 
@@ -95,7 +95,7 @@ def make_probes_cmd(
     colour: str = typer.Option("rec709", "--colour", help="rec709: linear Rec.709 through the camera's colour matrix (DNG ColorMatrix, else LibRaw's table); camera: camera RGB."),
     restore_sun: bool = typer.Option(False, "--restore-sun", help="Where the sun clips in every frame, restore its energy from the sky (matched to Hosek-Wilkie clear skies; flagged in probes.parquet)."),
     full_probe: bool = typer.Option(False, "--full-probe", help="Also write probes/<session>.full.exr at the views' own resolution (up to 512 rows; slow: ~13 s per view): a ground truth finer than the probe grid."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Merge every bracket in the RAW domain and assemble each session's views into a lat-long probe.
 
@@ -134,7 +134,7 @@ def bench_capture_cmd(
     repeat: int = typer.Option(2, help="Best of this many runs."),
     compression: list[str] = typer.Option(["ljpeg"], "--compression",
                                           help="DNG compression: ljpeg (as cameras write RAWs) or none; repeatable."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Ingest + merge time against a bare LibRaw decode of the same DNGs, and peak memory per tree size."""
     from f2l.capture.bench import format_table, run_capture_bench

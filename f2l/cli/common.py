@@ -1,8 +1,13 @@
-"""Helpers shared by the ``f2l`` CLI modules (:mod:`f2l.cli` and the stages' ``cli.py``)."""
+"""What the ``f2l`` CLI modules share: the ``--json`` option, ``--grid`` parsing, errors and exit codes."""
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import typer
+
+JsonOut = Annotated[bool, typer.Option("--json", help="Print one JSON summary on stdout, nothing else (no progress, no table).")]
+"""The ``--json`` option every command takes: ``json_out: JsonOut = False``."""
 
 
 def parse_grid(grid: str):
@@ -33,7 +38,7 @@ EXIT_PARTIAL = 4
 
 
 def exit_for(failed: int, succeeded: int) -> None:
-    """The batch commands' exit code (README, "Reliability"): 0 when nothing failed,
+    """The batch commands' exit code (docs/guide/reliability.md): 0 when nothing failed,
     :data:`EXIT_PARTIAL` when some inputs failed and others succeeded, :data:`EXIT_NOTHING_DONE`
     when inputs failed and none succeeded. A refusal for what an input shows (no face, a face too
     small, a probe without a sun) is a result, not a failure; an input that cannot be read or

@@ -1,5 +1,5 @@
-"""CLI layer of ``f2l build-dataset`` (registered on the main app as
-``app.command("build-dataset")(build_dataset_cmd)``; ``python -m f2l.pipeline.cli`` runs it on
+"""CLI layer of ``f2l build-dataset`` (registered by :mod:`f2l.cli.app` as
+``app.command("build-dataset")(build_dataset_cmd)``; ``python -m f2l.cli.build`` runs it on
 its own).
 
 Exit codes (one build collects a status per input, writes what it could, atomically, and the
@@ -21,6 +21,8 @@ from typing import Optional
 
 import typer
 
+from f2l.cli.common import JsonOut
+
 
 def build_dataset_cmd(
     root: Optional[Path] = typer.Argument(None, help="Capture tree (one folder per session). It is ingested (incrementally) first; leave it out to rebuild from the tree the last build in WORK used."),
@@ -32,7 +34,7 @@ def build_dataset_cmd(
     address: Optional[str] = typer.Option(None, "--address", help="--executor ray: the cluster (HOST:PORT); without it a local Ray with --workers CPUs."),
     workers: int = typer.Option(2, "--workers", min=1, help="--executor ray without --address: CPUs of the local Ray."),
     allow_outside: bool = typer.Option(False, "--allow-outside", help="As f2l ingest --allow-outside: a session.toml may name a flat field outside its session folder, and capture files that are symlinks out of ROOT are read (refused by default). Overrides the pipeline's ingest allow_outside."),
-    json_out: bool = typer.Option(False, "--json", help="Print one JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Capture tree → face-record shards paired with their session's probe: ingest → merge → sphere → calibrate → fit-faces → transport → shards. Only what changed is recomputed ("nothing to do" when nothing did); OUT/dataset_card.json says what was built, from what, how, and what was left out.
 

@@ -1,4 +1,4 @@
-"""CLI layer of face fitting (registered on the main app by :mod:`f2l.cli`): ``fit-faces``,
+"""CLI layer of face fitting (registered by :mod:`f2l.cli.app`): ``fit-faces``,
 ``compare-geometry``, ``bench-faces``."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli_support import exit_for, fail, parse_grid
+from f2l.cli.common import JsonOut, exit_for, fail, parse_grid
 
 
 def fit_faces_cmd(
@@ -26,7 +26,7 @@ def fit_faces_cmd(
     body_proxy: bool = typer.Option(False, "--body-proxy/--no-body-proxy", help="Add a neck-and-shoulders occluder (average adult dimensions, posed with the head) to the visibility (f2l.face.body)."),
     hairline: str = typer.Option("colour", help="The upper forehead's hairline band: colour (keep its pixels that have the skin's colour; f2l.face.hair), exclude (leave it out) or keep."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face to find and fit: its width in photo pixels (cheek to cheek along the eye line). Detection time grows as its inverse square; narrower faces found on the way are refused as too_small."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Detect every face of each photo (any size from --min-face-px, anywhere, any number), fit a 3D face mesh, mask skin and compute transport into face-record shards.
 
@@ -66,12 +66,12 @@ def fit_faces_cmd(
 
 def compare_geometry_cmd(
     fitted: list[Path] = typer.Argument(..., help="Shards written by `f2l fit-faces` from synthetic photos."),
-    truth: Path = typer.Option(..., "--truth", help="The `f2l synth` shards the photos came from."),
+    truth: Path = typer.Option(..., "--truth", help="The `f2l eval synth` shards the photos came from."),
     twin_out: Optional[Path] = typer.Option(
         None, "--twin-out",
         help="Write the true-geometry twins here (the fitted pixels and observations with the true mesh's "
              "normals and visibility) to estimate side by side with the fitted records."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON rows only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Normal error (degrees) of fitted face geometry against the synthetic ground truth, on the mask."""
     import numpy as np
@@ -103,7 +103,7 @@ def bench_faces_cmd(
     grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
     photo: Optional[list[Path]] = typer.Option(None, "--photo", help="Also time these real photos (repeatable)."),
     threads: int = typer.Option(2, help="Embree threads."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Face fitting run time per stage (decode, landmarks, geometry, transport) next to its normal error."""
     from f2l.face.bench import format_table, run_face_bench, to_json
@@ -121,8 +121,8 @@ def bench_detect_cmd(
     detector: str = typer.Option("full_range", help="full_range (shipped) or short_range (the landmark bundle's detector, tiled alike)."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", help="Smallest face searched for (px)."),
     seed: int = typer.Option(0, help="Seed of the composites."),
-    rendered: Optional[list[Path]] = typer.Option(None, "--rendered", help="Also the recall on `f2l render-faces --framing ...` folders (their meta holds every true face box); repeatable."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON only."),
+    rendered: Optional[list[Path]] = typer.Option(None, "--rendered", help="Also the recall on `f2l eval render-faces --framing ...` folders (their meta holds every true face box); repeatable."),
+    json_out: JsonOut = False,
 ) -> None:
     """Face detection on real photographs framed wide: recall by face width, false detections per 100 face-free photos, time by photo size."""
     from f2l.face.bench_detect import format_rendered, format_table, rendered_recall, run_detect_bench

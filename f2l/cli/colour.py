@@ -1,4 +1,4 @@
-"""CLI layer of colour calibration (registered on the main app by :mod:`f2l.cli`)."""
+"""CLI layer of colour calibration (registered by :mod:`f2l.cli.app`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from f2l.cli_support import exit_for
+from f2l.cli.common import JsonOut, exit_for
 
 
 def calibrate_cmd(
@@ -16,7 +16,7 @@ def calibrate_cmd(
     chart: str = typer.Option("ColorChecker24 - After November 2014", "--chart", help="Reference chart edition (a colour-science name), e.g. 'ColorChecker24 - Before November 2014'."),
     method: str = typer.Option("3x3", "--method", help="Colour correction: 3x3 (Cheung 2004 matrix) or root-polynomial (Finlayson 2015, degree 2)."),
     reports: bool = typer.Option(True, "--reports/--no-reports", help="Write a swatch PNG and a ΔE2000 table per photo under OUT/reports/."),
-    json_out: bool = typer.Option(False, "--json", help="Print a JSON summary only."),
+    json_out: JsonOut = False,
 ) -> None:
     """Fit a colour correction (camera RGB → linear Rec.709) to each ColorChecker photo; ΔE2000 reports."""
     from f2l.colour.calibrate import calibrate, format_summary, summarise

@@ -1,0 +1,175 @@
+"""The user's commands (the top of ``f2l --help``): models, estimate, evaluate, report, demo.
+Registered by :mod:`f2l.cli.app`; thin: parsing, progress and exit codes, no algorithms."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from f2l.cli.common import JsonOut, exit_for, fail as _fail
+
+
+def models(json_out: JsonOut = False) -> None:
+    """List the installed lighting models (entry-point group f2l.lighting_models)."""
+    from f2l.lighting.grid import LatLongGrid
+    from f2l.models.registry import ModelNotFoundError, discover, load_model
+
+    rows = []
+    grid = LatLongGrid(16, 32)
+    for name, info in discover().items():
+        row = {"name": name, "package": info.package, "target": info.target, "ok": info.ok,
+               "capabilities": list(info.capabilities)}
+        if info.ok:
+            try:
+                inst = load_model(name, grid)  # checks the declared capabilities on a small grid
+                row.update(params=inst.num_params, domain=inst.domain, version=inst.version,
+                           description=inst.description)
+            except ModelNotFoundError as exc:
+                row.update(ok=False, error=str(exc))
+        else:
+            row.update(error=info.error)
+        rows.append(row)
+    if json_out:
+        typer.echo(json.dumps(rows, indent=2))
+        return
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title="f2l lighting models")
+    for col in ("name", "params", "domain", "capabilities", "package", "description"):
+        table.add_column(col)
+    for r in rows:
+        caps = ", ".join(r["capabilities"]) or "-"
+        if r["ok"]:
+            table.add_row(r["name"], str(r["params"]), r["domain"], caps, r["package"], r["description"])
+        else:
+            table.add_row(r["name"], "-", "-", caps, r["package"], f"[red]failed to load: {escape(r['error'])}[/red]")
+    Console().print(table)
+
+
+def estimate(
+    shards: list[Path] = typer.Argument(..., help="Photos (JPEG/PNG/TIFF or camera RAW), folders of photos, shard directories or .parquet files. Every face of a photo is fitted on the way and cached by content under OUT/faces."),
+    model: list[str] = typer.Option(..., "--model", "-m", help="Lighting model name (repeatable)."),
+    out: Path = typer.Option(..., "--out", help="Output directory (estimates.parquet, probes/, previews/; faces/ for photos)."),
+    min_face_px: Optional[float] = typer.Option(None, "--min-face-px", min=8.0, help="Photos: the smallest face to find and fit, in px (default: the pipeline's, 40)."),
+    workers: Optional[int] = typer.Option(None, help="Parallel workers (default: cores // threads)."),
+    threads: int = typer.Option(2, help="Torch/Embree threads per worker."),
+    executor: str = typer.Option("local", help="local (a process pool on this machine) or ray (Ray Data; needs the 'ray' extra)."),
+    address: Optional[str] = typer.Option(None, help="Ray cluster address for --executor ray (default: start a local Ray with --workers CPUs)."),
+    max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
+    max_iter: int = typer.Option(18, help="L-BFGS iterations of non-linear models (sunsky: all phases together)."),
+    sun_prior: bool = typer.Option(
+        True, "--sun-prior/--no-sun-prior",
+        help="Constrain the sun's elevation from the photo's capture time and GPS position (EXIF or "
+             "the record's meta 'capture'); sun models only. The heading is unknown: azimuth stays free."),
+    skin_gloss: Optional[float] = typer.Option(
+        None, "--skin-gloss", min=0.0, max=1.0,
+        help="The skin's gloss, an achromatic albedo added to the diffuse one (sun models; default "
+             "0.05, for real skin). 0 reads the skin as Lambertian, as f2l's own synthetic faces are."),
+    skin_reflection: Optional[float] = typer.Option(
+        None, "--skin-reflection", min=0.0, max=1.0,
+        help="The skin's reflection of the sky, sun and ground about the mirror direction (sun models; "
+             "needs the records' 3-D points; default 0 = off). 0.01 is the value measured on make eval-real "
+             "(docs/experiments/accuracy_issue16.md); it costs about 15% more time a face, and on Lambertian faces (f2l's own renders) "
+             "it is a bias."),
+    json_out: JsonOut = False,
+) -> None:
+    """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
+    faces already estimated with the same model, version and settings.
+
+    A record that cannot be read or estimated is a row with its status and reason; the others are
+    written. Exit code 4 when some failed, 1 when none succeeded."""
+    from f2l.pipeline.photos import fit_photos, is_photo_input
+
+    missing = [str(s) for s in shards if not Path(s).exists()]
+    if missing:
+        _fail(f"no such photo or shard path: {', '.join(missing)}")
+    if executor not in ("local", "ray"):
+        raise typer.BadParameter("must be local or ray", param_hint="--executor")
+    photos = [s for s in shards if is_photo_input(s)]
+    fitted = None
+    if photos:
+        from f2l.face.landmarker import LandmarkerError
+        from f2l.synth.facemesh import FaceMeshError
+
+        try:
+            fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=not json_out)
+        except (LandmarkerError, FaceMeshError) as exc:
+            _fail(str(exc))
+        shards = [s for s in shards if not is_photo_input(s)] + fitted["shards"]
+        if not shards:
+            reasons = "; ".join(r["message"] for r in fitted["photos"][:5])
+            _fail(f"no usable face in {len(fitted['photos'])} photo(s): {reasons}")
+    from f2l.estimate.ray_executor import ExecutorUnavailable
+    from f2l.estimate.runner import run_estimates
+    from f2l.models.registry import ModelNotFoundError
+
+    try:
+        summary = run_estimates(
+            shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
+            max_iter=max_iter, progress=not json_out, sun_prior=sun_prior, executor=executor,
+            ray_address=address, skin_gloss=skin_gloss, skin_reflection=skin_reflection,
+        )
+    except ModelNotFoundError as exc:
+        _fail(str(exc.args[0]))
+    except ExecutorUnavailable as exc:
+        _fail(str(exc))
+    if fitted is not None:
+        summary["photos"] = {"counts": fitted["counts"],
+                             "not_ok": [{k: r[k] for k in ("source_path", "status", "message")}
+                                        for r in fitted["photos"] if r["status"] != "ok"]}
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    photo_errors = 0 if fitted is None else sum(r["status"] == "error" for r in fitted["photos"])
+    exit_for(summary["failed"] + photo_errors, summary["ok"] + summary["skipped_done"])
+
+
+def evaluate(
+    estimates_dir: Path = typer.Argument(..., help="Directory written by `f2l estimate`."),
+    shards: Optional[list[Path]] = typer.Option(None, "--shards", help="Shards with ground truth (default: recorded)."),
+    json_out: JsonOut = False,
+) -> None:
+    """The seven §5.1 metrics and sun energy shares per face (CSV); mean ± std, medians and the
+    overcast sun-share excess per model (Markdown + CSV)."""
+    from f2l.metrics.evaluate import evaluate_estimates
+
+    result = evaluate_estimates(estimates_dir, shards)
+    if json_out:
+        typer.echo(json.dumps(result["summary_rows"], indent=2))
+    else:
+        typer.echo(result["markdown"])
+        typer.echo(f"\nwrote {result['per_face_csv']}, {result['summary_csv']}, {result['summary_md']}")
+
+
+def demo(
+    out: Path = typer.Option(Path("demo_out"), "--out", help="Output directory."),
+    n: int = typer.Option(12, "--n", help="Number of synthetic faces."),
+    seed: int = typer.Option(0, help="Seed."),
+    model: Optional[list[str]] = typer.Option(None, "--model", "-m", help="Models (default: all built-in)."),
+) -> None:
+    """Synthesise faces, estimate with every built-in model, evaluate, and write pictures."""
+    from f2l.demo import run_demo
+
+    run_demo(out, n=n, seed=seed, models=model)
+
+
+def report(
+    folder: Path = typer.Argument(..., help="An evaluation folder (shards/ + estimates/, e.g. demo_out) or a build-dataset output folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="The HTML file (default FOLDER/report.html); thumbnails go to report_files/ beside it."),
+    work: Optional[Path] = typer.Option(None, "--work", help="build-dataset's work folder: brackets, statuses and coverage per session."),
+    estimates: Optional[Path] = typer.Option(None, "--estimates", help="f2l estimate's output, evaluated (f2l evaluate) against FOLDER's shards (default FOLDER/estimates)."),
+    page_size: int = typer.Option(200, "--page-size", min=1, help="Faces per page."),
+    json_out: JsonOut = False,
+) -> None:
+    """One self-contained HTML report per build or evaluation folder (no server, nothing remote)."""
+    from f2l.report.build import write_report
+
+    if not folder.is_dir():
+        _fail(f"{folder}: not a folder")
+    summary = write_report(folder, out, work=work, estimates=estimates, page_size=page_size)
+    typer.echo(json.dumps(summary.to_json()) if json_out else
+               f"wrote {summary.pages[0]} ({len(summary.pages)} pages, {summary.faces} faces; thumbnails "
+               f"{summary.thumbnails_written} written, {summary.thumbnails_reused} reused)")
