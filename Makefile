@@ -204,7 +204,7 @@ hdri-import: $(STAMP)
 
 # Re-create the shipped Hosek-Wilkie sun/sky table of `make-probes --restore-sun` (needs f2l[render]).
 sun-table: $(STAMP)
-	$(BIN)/python -m f2l.capture.sun_restore
+	$(BIN)/python -m f2l.render.sun_table
 
 clean:
 	rm -rf $(VENV) demo_out

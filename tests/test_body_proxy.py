@@ -41,7 +41,7 @@ def test_proxy_sits_under_the_chin_with_average_adult_dimensions():
 
 
 def test_posed_proxy_follows_the_head_rigidly():
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     canon = np.asarray(canonical_face_mesh()[0], dtype=np.float64)
     R = pose_matrix(15.0, -8.0, 4.0)

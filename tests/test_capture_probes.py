@@ -154,7 +154,7 @@ def test_downsample_view_preserves_radiance_and_flags_blocks():
 
 @pytest.mark.parametrize("compression", ["ljpeg", "none"])
 def test_bench_capture_runs_the_real_stages(compression):
-    from f2l.capture.bench import format_table, run_capture_bench
+    from f2l.dev.bench_capture import format_table, run_capture_bench
 
     (row,) = run_capture_bench((2,), frames=3, megapixels=0.05, repeat=1, compression=compression)
     assert row["brackets_found"] == 2  # two brackets in one folder, split by ingest

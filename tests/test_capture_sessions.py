@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from f2l.capture.lens import LensError, lens_from_view
-from f2l.capture.sessions import (CANON_EOS_30D_XYZ_TO_CAMERA, FISHEYE_FALLOFF, write_fisheye_session,
+from f2l.testing.sessions import (CANON_EOS_30D_XYZ_TO_CAMERA, FISHEYE_FALLOFF, write_fisheye_session,
                                   write_panorama_session)
 from f2l.cli import app
 from f2l.io.exr import REC709_CHROMATICITIES, read_exr, write_exr

@@ -20,7 +20,7 @@ FOCAL, HW, DISTANCE = 700.0, (256, 256), 60.0
 
 @pytest.fixture(scope="module")
 def canonical():
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     return np.asarray(canonical_face_mesh()[0], dtype=np.float64)
 
@@ -218,7 +218,7 @@ def _trimesh_loop(vertices, faces, iterations):
 @pytest.mark.parametrize("iterations", [1, 2])
 def test_loop_matrix_matches_trimesh_on_the_open_face_mesh(canonical, iterations):
     from f2l.face.subdivision import loop_subdivision
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     tri = np.asarray(canonical_face_mesh()[1])
     rng = np.random.default_rng(iterations)
@@ -264,7 +264,7 @@ def test_rasterise_and_visibility_share_one_scene(canonical):
     from f2l.transport.visibility import scene_for
 
     v = canonical + [0.0, 0.0, -60.0]
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     tri = np.asarray(canonical_face_mesh()[1])
     a = scene_for(v, tri)

@@ -180,7 +180,7 @@ def grey_photo():
 def synthetic_landmarks(yaw, pitch=0.0, roll=0.0):
     """(478, 3) landmarks of the canonical mesh posed at DISTANCE cm through the photo's pinhole;
     the 10 iris rows are copies of eye points."""
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     c = np.asarray(canonical_face_mesh()[0], dtype=np.float64)
     v = (c - c.mean(0)) @ pose_matrix(yaw, pitch, roll).T + [0.0, 0.0, -DISTANCE]
@@ -385,7 +385,7 @@ def test_landmarker_is_deterministic_and_accurate(synth_truth):
 
 @pytest.fixture(scope="module")
 def altered_bundle(tmp_path_factory):
-    from f2l.synth.facemesh import default_task_path
+    from f2l.face.mesh import default_task_path
 
     path = tmp_path_factory.mktemp("bundle") / "altered_landmarker.task"
     path.write_bytes(default_task_path().read_bytes() + b"\0")
@@ -394,7 +394,7 @@ def altered_bundle(tmp_path_factory):
 
 def test_altered_bundle_is_refused(altered_bundle):
     from f2l.face.landmarker import FaceLandmarker
-    from f2l.synth.facemesh import FaceMeshError
+    from f2l.face.mesh import FaceMeshError
 
     with pytest.raises(FaceMeshError, match="SHA-256") as info:
         FaceLandmarker(task_path=altered_bundle)

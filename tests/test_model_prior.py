@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from f2l.cli import app
 from f2l.estimate.model_prior import FORMAT, GmmPrior, fit_gmm, load_prior, save_prior
-from f2l.estimate.prior_build import (ProbeRecord, build_prior, fit_probes, list_probes, write_fit_report,
-                                      write_sky_corpus)
+from f2l.estimate.prior_build import (ProbeRecord, build_prior, fit_probes, list_probes, write_fit_report)
+from f2l.synth.skies import write_sky_corpus
 from f2l.io.exr import read_exr
 from f2l.lighting.grid import LatLongGrid
 from f2l_builtin_models import sunsky_prior

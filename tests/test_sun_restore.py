@@ -70,7 +70,7 @@ def test_make_probes_restores_the_clipped_sun(tmp_path):
     a lower bound; with --restore-sun its sun energy is the truth's within 15%, flagged."""
     from typer.testing import CliRunner
 
-    from f2l.capture.sessions import write_fisheye_session
+    from f2l.testing.sessions import write_fisheye_session
     from f2l.cli import app
 
     sun, sky_map, power = _hw(37.0, 3.7, azimuth_rad=1.0)  # between the table's nodes

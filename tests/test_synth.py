@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
-from f2l.synth import facemesh
-from f2l.synth.facemesh import FaceMeshError, canonical_face_mesh, default_task_path, face_mesh
+from f2l.face import mesh as facemesh
+from f2l.face.mesh import FaceMeshError, canonical_face_mesh, default_task_path, face_mesh
 from f2l.synth.render import make_synthetic_set, render_face
 from f2l.synth.skies import (
     clear_sky,

@@ -444,7 +444,7 @@ def assemble_session(session: str, views: list, out_dir: str | os.PathLike, grid
         return finite_row(row)
     _set_sun(row, views)
     if row["sun_elevation_deg"] is None and probe.coverage[: grid.height // 2].any():
-        from f2l.metrics.lighting import sun_direction
+        from f2l.lighting.sun import sun_direction
 
         d = sun_direction(probe.radiance, grid)
         row["sun_elevation_deg"] = math.degrees(math.asin(float(np.clip(d[1], -1, 1))))

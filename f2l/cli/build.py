@@ -43,7 +43,7 @@ def build_dataset_cmd(
     from f2l.pipeline.build import build_dataset
     from f2l.pipeline.cache import LockHeld
     from f2l.pipeline.ray_build import ExecutorUnavailable
-    from f2l.synth.facemesh import FaceMeshError
+    from f2l.face.mesh import FaceMeshError
 
     echo = None if json_out else (lambda line: typer.echo(line, err=True))
     try:

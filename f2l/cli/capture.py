@@ -137,7 +137,7 @@ def bench_capture_cmd(
     json_out: JsonOut = False,
 ) -> None:
     """Ingest + merge time against a bare LibRaw decode of the same DNGs, and peak memory per tree size."""
-    from f2l.capture.bench import format_table, run_capture_bench
+    from f2l.dev.bench_capture import format_table, run_capture_bench
 
     from f2l.capture.dng import COMPRESSIONS
 

@@ -34,7 +34,7 @@ def fit_faces_cmd(
     from f2l.face.fit import FitOptions
     from f2l.face.landmarker import LandmarkerError
     from f2l.face.run import fit_faces
-    from f2l.synth.facemesh import FaceMeshError
+    from f2l.face.mesh import FaceMeshError
 
     from f2l.face.geometry import DEPTH_SOURCES
 
@@ -76,7 +76,7 @@ def compare_geometry_cmd(
     """Normal error (degrees) of fitted face geometry against the synthetic ground truth, on the mask."""
     import numpy as np
 
-    from f2l.face.compare import compare_geometry
+    from f2l.render.compare_geometry import compare_geometry
 
     rows = compare_geometry(fitted, truth, twin_out=twin_out)
     if not rows:
@@ -106,7 +106,7 @@ def bench_faces_cmd(
     json_out: JsonOut = False,
 ) -> None:
     """Face fitting run time per stage (decode, landmarks, geometry, transport) next to its normal error."""
-    from f2l.face.bench import format_table, run_face_bench, to_json
+    from f2l.dev.bench_faces import format_table, run_face_bench, to_json
 
     result = run_face_bench(faces=faces, image_size=image_size, resolution=resolution, grid=parse_grid(grid),
                             threads=threads, photos=photo)

@@ -149,7 +149,7 @@ def sky_corpus(
     json_out: JsonOut = False,
 ) -> None:
     """Write the project's default sky corpus (CIE clear + overcast skies) for `f2l prior build`."""
-    from f2l.estimate.prior_build import write_sky_corpus
+    from f2l.synth.skies import write_sky_corpus
 
     step, close = _progress(n, "sky-corpus", not json_out)
     paths = write_sky_corpus(out, n, seed=seed, grid=_grid(grid), overcast_fraction=overcast_fraction, progress=step)

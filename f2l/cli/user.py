@@ -94,7 +94,7 @@ def estimate(
     fitted = None
     if photos:
         from f2l.face.landmarker import LandmarkerError
-        from f2l.synth.facemesh import FaceMeshError
+        from f2l.face.mesh import FaceMeshError
 
         try:
             fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=not json_out)

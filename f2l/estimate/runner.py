@@ -19,14 +19,12 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import asdict
 from pathlib import Path
 
-
 from f2l import __version__
 from f2l.estimate.estimator import EstimatorConfig
 from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior,  # noqa: F401
                                  config_hash, estimate_record, torch_threads)
+from f2l.io.tables import ESTIMATE_RUN_FILE as RUN_FILE, ESTIMATES_FILE  # noqa: F401 (named in f2l.io: evaluate reads them)
 
-ESTIMATES_FILE = "estimates.parquet"
-RUN_FILE = "run.json"
 
 def _init_worker(threads: int) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))

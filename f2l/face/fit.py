@@ -220,7 +220,7 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     """Fit one face of ``photo`` (:class:`f2l.face.photo.Photo`) from its (478, 3) landmarks."""
     from f2l.face.quality import face_blur_index
     from f2l.face.regions import skin_regions
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
     from f2l.transport.visibility import compute_visibility, front_mask, packed_width
 
     if options.transport_pixels not in TRANSPORT_PIXELS:

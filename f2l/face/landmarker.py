@@ -13,7 +13,7 @@ for ``cv2``):
   was letterboxed into the bundle's short-range 128×128 detector, which lost every face under
   about a fifth of the long side; ``docs/experiments/face_detection.md`` compares the two.)
 * ``face_landmarks_detector.tflite`` of the pinned ``face_landmarker.task`` bundle (see
-  :mod:`f2l.synth.facemesh`) — a 256×256 RGB crop in [0, 1] → 478 (x, y, z) in crop
+  :mod:`f2l.face.mesh`) — a 256×256 RGB crop in [0, 1] → 478 (x, y, z) in crop
   pixels (468 face-mesh points + 10 iris points) and a face-presence logit. The crop is the
   square around the detection box scaled ×1.5 and rotated so that the eyes are level; a second
   pass re-crops around the first pass's landmarks (MediaPipe's tracking ROI, rotation from
@@ -135,7 +135,7 @@ def _model_bytes(path: Path, check_sha256: bool) -> bytes:
 
 @lru_cache(maxsize=4)
 def _interpreters(task_path: str, detector_path: str, check_sha256: bool, threads: int):
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     canonical_face_mesh(task_path, check_sha256=check_sha256)  # verifies the pin
     detector_bytes = _model_bytes(Path(detector_path), check_sha256)
@@ -163,7 +163,7 @@ class FaceLandmarker:
     def __init__(self, task_path: str | os.PathLike | None = None, *, check_sha256: bool = True,
                  threads: int = 1, min_score: float | None = None, min_presence: float = MIN_PRESENCE,
                  refine_passes: int = 1, detector_path: str | os.PathLike | None = None) -> None:
-        from f2l.synth.facemesh import default_task_path
+        from f2l.face.mesh import default_task_path
 
         path = Path(task_path) if task_path is not None else default_task_path()
         self.task_path = path.resolve()

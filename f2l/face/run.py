@@ -78,7 +78,7 @@ def face_id(path: Path, sha256: str, index: int) -> str:
 
 def _overlay(out: Path, fid: str, fit: FaceFit, options: FitOptions) -> str:
     from f2l.face.overlay import write_overlay
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     rel = f"overlays/{fid}.png"
     (out / "overlays").mkdir(parents=True, exist_ok=True)

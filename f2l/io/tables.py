@@ -23,6 +23,11 @@ from f2l.io.schema import SchemaError, arrow_schema, load_schema, validate_table
 
 __all__ = ["CommitOnSuccess", "ParquetAppender", "rows_to_table", "table_row", "write_table_atomic"]
 
+ESTIMATES_FILE = "estimates.parquet"
+"""What ``f2l estimate`` writes in its output folder: one row per face and model."""
+ESTIMATE_RUN_FILE = "run.json"
+"""Beside it: the run's shards, models and settings (what ``f2l evaluate`` reads back)."""
+
 
 @lru_cache(maxsize=None)
 def _schema(name: str) -> dict:

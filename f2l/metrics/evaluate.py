@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from f2l.estimate.runner import ESTIMATES_FILE, RUN_FILE
+from f2l.io.tables import ESTIMATE_RUN_FILE as RUN_FILE, ESTIMATES_FILE
 from f2l.io.atomic import atomic_path, write_text_atomic
 
 

@@ -54,7 +54,7 @@ def stage_versions() -> dict:
 
 
 def versions() -> dict:
-    from f2l.synth.facemesh import FACE_LANDMARKER_SHA256
+    from f2l.face.mesh import FACE_LANDMARKER_SHA256
 
     return {"f2l": f2l.__version__, "python": platform.python_version(),
             "libraries": library_versions(), "stages": stage_versions(),

@@ -91,7 +91,7 @@ def fit_options(fit: dict, transport: dict, grid_hw: tuple[int, int]):
 
 def fit_key(row: dict, fit: dict, transport: dict, grid_hw: tuple[int, int]) -> str:
     from f2l.face.landmarker import DETECTOR_SHA256
-    from f2l.synth.facemesh import FACE_LANDMARKER_SHA256
+    from f2l.face.mesh import FACE_LANDMARKER_SHA256
 
     return stage_key("fit-faces", FIT_VERSION,
                      {"path": row["path"], "sha256": row["sha256"],
@@ -169,7 +169,7 @@ class FaceFitter:
                 out["status"], out["message"] = "no_face", f"{rel}: no face detected"
         except Exception as exc:  # noqa: BLE001 - one bad photo never stops the build
             from f2l.face.landmarker import LandmarkerError
-            from f2l.synth.facemesh import FaceMeshError
+            from f2l.face.mesh import FaceMeshError
 
             if isinstance(exc, (LandmarkerError, FaceMeshError)):
                 raise  # the model, not the photo: stop (nothing is cached)

@@ -159,7 +159,7 @@ def sun_moved(probe: np.ndarray, grid: LatLongGrid, from_direction: np.ndarray, 
 def write_true_geometry_twins(fitted_dir: Path, render_dir: Path, out_dir: Path, threads: int = 2) -> dict:
     """Twin every fitted record of a rendered photo on the renderer's true mesh (f2l's camera at
     the origin: the render's camera sat at +Z ``camera_distance_cm``); ground-truth probes copied."""
-    from f2l.face.compare import twin_from_mesh
+    from f2l.render.compare_geometry import twin_from_mesh
     from f2l.io.shards import ShardWriter, iter_records, load_gt_probe, write_side_probe
 
     cases = load_cases(render_dir)

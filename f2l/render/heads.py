@@ -245,7 +245,7 @@ def canonical_head(rng: np.random.Generator, *, skin_tone: float | None = None) 
     """
     import trimesh
 
-    from f2l.synth.facemesh import face_mesh
+    from f2l.face.mesh import face_mesh
 
     mesh = face_mesh(subdivisions=1)
     verts = np.asarray(mesh.vertices, dtype=np.float64)

@@ -31,7 +31,7 @@ from typing import Iterator
 import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
-from f2l.synth.facemesh import face_mesh
+from f2l.face.mesh import face_mesh
 
 FOV_DEG = 19.0  # face (~16 x 18 cm at 60 cm) fills ~half the frame: N ~ 8-9k px at 128^2
 FACE_DISTANCE_CM = 60.0
@@ -202,7 +202,7 @@ def _sun_from_probe(grid: LatLongGrid, probe: np.ndarray, cap_deg: float = 5.0):
 def project_landmarks(head_pose_deg, image_size: int, fov_deg: float = FOV_DEG) -> np.ndarray:
     """The 468 canonical landmarks under the head pose, projected to continuous photo pixels
     (x right, y down) of the synthetic camera; (468, 2)."""
-    from f2l.synth.facemesh import canonical_face_mesh
+    from f2l.face.mesh import canonical_face_mesh
 
     v = np.asarray(canonical_face_mesh()[0], dtype=np.float64)
     sub = np.asarray(face_mesh(2).vertices, dtype=np.float64)  # posed_face_mesh centres on this

@@ -81,7 +81,7 @@ def write_tree(root: Path, brackets: int, frames: int, megapixels: float, seed: 
     from datetime import datetime, timedelta
 
     from f2l.capture.dng import synthetic_sky_scene, write_bracket
-    from f2l.capture.sessions import CANON_EOS_30D_XYZ_TO_CAMERA, aeb_order
+    from f2l.testing.sessions import CANON_EOS_30D_XYZ_TO_CAMERA, aeb_order
 
     h = int(round(np.sqrt(megapixels * 1e6 * 3 / 4) / 2)) * 2
     w = int(round(h * 4 / 3 / 2)) * 2
