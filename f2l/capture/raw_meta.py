@@ -26,6 +26,7 @@ Conventions:
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -120,11 +121,14 @@ def raw_frame(
 def _open_rawpy(path: str, unpack: bool):
     import rawpy
 
+    from f2l.io.native_stderr import native_output_to_log
+
     try:
-        raw = rawpy.RawPy()
-        raw.open_file(path)
-        if unpack:
-            raw.unpack()
+        with native_output_to_log(logging.getLogger("f2l.capture.raw"), path):  # LibRaw's own messages
+            raw = rawpy.RawPy()
+            raw.open_file(path)
+            if unpack:
+                raw.unpack()
         return raw
     except rawpy.LibRawError as exc:
         reason = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
@@ -257,6 +261,15 @@ def exif_fields(path: str | os.PathLike) -> dict:
     return _exif(os.fspath(path))[0]
 
 
+def _orientation(values) -> int:
+    """EXIF Orientation 1..8, or 1 where the tag is missing, malformed or out of range."""
+    try:
+        value = int(values[0]) if values and not isinstance(values, str) else 1
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return 1
+    return value if 1 <= value <= 8 else 1
+
+
 def _exif(path: str) -> tuple[dict, dict]:
     size = _check_file(path)
     tags = _exif_tags(path)
@@ -270,7 +283,7 @@ def _exif(path: str) -> tuple[dict, dict]:
         "iso": _number(tags, "EXIF ISOSpeedRatings", "Image ISOSpeedRatings", "EXIF PhotographicSensitivity"),
         "timestamp": _timestamp(tags), "lens": _text(tags, "EXIF LensModel", "Image EXIFPhotoLensModel"),
         "focal_length_mm": _number(tags, "EXIF FocalLength", "Image FocalLength"),
-        "orientation": int(orientation[0]) if orientation and not isinstance(orientation, str) else 1,
+        "orientation": _orientation(orientation),
         "gps_latitude_deg": latitude, "gps_longitude_deg": longitude, "gps_altitude_m": altitude,
         "xyz_to_camera": _dng_matrix(tags),
     }, tags  # fmt: skip

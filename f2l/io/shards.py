@@ -601,7 +601,10 @@ def _record_from_table(table: pa.Table, source: str, where: str, schema: dict,
         except Exception:  # noqa: BLE001 - a malformed column is reported by the checks below
             pass
     if validate:
-        errors = table_errors(table, schema, source=where)
+        try:
+            errors = table_errors(table, schema, source=where)
+        except (UnicodeDecodeError, ValueError, TypeError, OverflowError) as exc:  # bytes no reader can decode
+            return BadRecord(source, face_id, f"{where}: unreadable values ({type(exc).__name__}: {exc})")
         if errors:
             return BadRecord(source, face_id, "; ".join(errors[:10])
                              + (f"; ... and {len(errors) - 10} more" if len(errors) > 10 else ""))
