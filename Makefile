@@ -41,7 +41,7 @@ bench: $(STAMP)
 	$(BIN)/f2l dev bench --faces 1
 
 # Every reader of outside input fed 2,000 mutated files each, and every batch command 100-200, under a 2 GB address-space limit
-# (tests/fuzzing.py; `make test` runs 60 per reader): ~6 min on 2 cores. Replay a failure with
+# (tests/fuzzing.py; each target in its own process; `make test` runs 60 per reader): ~8 min on 2 cores. Replay a failure with
 # `$(BIN)/python tests/fuzzing.py --target T --first CASE --cases 1 --seed 1`.
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzzing.py --cases 2000 --seed 1 --memory-gb 2

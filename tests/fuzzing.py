@@ -407,6 +407,11 @@ def _estimate(path: Path):
         raise Unusable(f"estimate lost the good record: {str(summary)[:300]}")
 
 
+TARGET_NAMES = ("exr", "exr-any", "radiance", "pfm", "png", "jpeg", "dng", "session-toml", "pipeline-toml", "json",
+                "shard", "cmd-ingest", "cmd-fit-probe", "cmd-fit-probe-side", "cmd-fit-faces", "cmd-estimate")
+"""Every target, in the order a full run takes them (:func:`targets` builds them)."""
+
+
 def targets() -> dict[str, Target]:
     from f2l.capture.raw_meta import RawError
     from f2l.face.photo_core import PhotoError
@@ -465,7 +470,10 @@ def run_target(target: Target, cases: int, seed: int, work: Path, first: int = 0
     if error is not None or printed:
         return [{"target": target.name, "case": "seed", "mutation": "none",
                  "error": f"the valid seed file fails: {error!r} {printed[:200]!r}"}]
+    progress = os.environ.get("F2L_FUZZ_PROGRESS")
     for case in range(first, first + max(1, round(cases * target.share))):
+        if progress:  # the case in hand, for the parent to name if this process dies
+            Path(progress).write_text(str(case))
         rng = np.random.default_rng([seed, case, sum(target.name.encode())])
         data, what = original, []
         for _ in range(int(rng.integers(1, 3))):
@@ -491,6 +499,27 @@ def run_target(target: Target, cases: int, seed: int, work: Path, first: int = 0
     return failures
 
 
+def _run_isolated(name: str, args) -> tuple[dict, list[dict]]:
+    """One target in a child process (its own address-space limit and crashes): (its entry in the
+    summary, its failures). A child that dies is a failure naming the case it was on."""
+    import subprocess
+
+    with tempfile.NamedTemporaryFile(prefix="f2l-fuzz-case-") as progress:
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--target", name, "--cases", str(args.cases),
+               "--seed", str(args.seed), "--first", str(args.first), "--memory-gb", str(args.memory_gb)]
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=dict(os.environ, F2L_FUZZ_PROGRESS=progress.name))
+        try:
+            child = json.loads(proc.stdout.strip().splitlines()[-1])
+            return child["targets"][name], child["failures"]
+        except (ValueError, IndexError, KeyError):
+            case = Path(progress.name).read_text().strip() or "?"
+            how = f"signal {-proc.returncode}" if proc.returncode < 0 else f"exit {proc.returncode}"
+            return ({"cases": 0, "failures": 1, "seconds": None},
+                    [{"target": name, "case": case, "mutation": "(see the replay)",
+                      "error": f"the process died ({how}) on this case; replay: python tests/fuzzing.py --target "
+                               f"{name} --first {case} --cases 1 --seed {args.seed}"}])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=40, help="mutated inputs per target")
@@ -499,22 +528,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--target", action="append", help="only these targets (repeatable)")
     ap.add_argument("--memory-gb", type=float, default=2.0, help="address-space limit (0: none)")
     args = ap.parse_args(argv)
-    if args.memory_gb > 0:
-        limit = int(args.memory_gb * 2**30)
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    chosen = targets()
-    names = args.target or list(chosen)
+    names = args.target or list(TARGET_NAMES)
     summary = {"seed": args.seed, "cases_per_target": args.cases, "memory_gb": args.memory_gb,
                "targets": {}, "failures": []}
-    with tempfile.TemporaryDirectory(prefix="f2l-fuzz-") as tmp:
+    if len(names) > 1:  # each target in its own process: its own limit, and a crash is one target's failure
         for name in names:
-            t0 = time.perf_counter()
-            failures = run_target(chosen[name], args.cases, args.seed, Path(tmp), args.first)
-            n = max(1, round(args.cases * chosen[name].share))
-            summary["targets"][name] = {"cases": n, "failures": len(failures),
-                                        "seconds": round(time.perf_counter() - t0, 2)}
+            entry, failures = _run_isolated(name, args)
+            summary["targets"][name] = entry
             summary["failures"].extend(failures)
-            print(f"{name:18s} {n:5d} cases  {len(failures):3d} failures  "
+    else:
+        if args.memory_gb > 0:
+            limit = int(args.memory_gb * 2**30)
+            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+        target = targets()[names[0]]
+        with tempfile.TemporaryDirectory(prefix="f2l-fuzz-") as tmp:
+            t0 = time.perf_counter()
+            failures = run_target(target, args.cases, args.seed, Path(tmp), args.first)
+            n = max(1, round(args.cases * target.share))
+            summary["targets"][target.name] = {"cases": n, "failures": len(failures),
+                                               "seconds": round(time.perf_counter() - t0, 2)}
+            summary["failures"].extend(failures)
+            print(f"{target.name:18s} {n:5d} cases  {len(failures):3d} failures  "
                   f"{time.perf_counter() - t0:6.1f} s", file=sys.stderr, flush=True)
     for f in summary["failures"][:50]:
         print(f"FAIL {f['target']} case {f['case']} ({f['mutation']}): {f['error']}", file=sys.stderr)
