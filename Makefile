@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths fuzz bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,10 @@ bench: $(STAMP)
 # `$(BIN)/python tests/fuzzing.py --target T --first CASE --cases 1 --seed 1`.
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzzing.py --cases 2000 --seed 1 --memory-gb 2
+
+# The README's picture (docs/example.png): a real photo, its estimated probe, an object lit by it (~10 s)
+readme-figure: $(STAMP)
+	$(BIN)/python -m f2l.dev.readme_figure
 
 # Face detection on real photographs framed wide (docs/experiments/face_detection.md): recall by face
 # width, false detections per 100 face-free photos, time by photo size (~1 min on 2 cores)

@@ -86,3 +86,12 @@ def test_a_photo_without_a_face_gives_none_and_bad_input_raises(photos, tmp_path
         f2l.estimate_photo(photos / "photo.jpg", model="no-such-model")
     with pytest.raises(ValueError, match="nothing.exr"):
         f2l.load_probe(tmp_path / "nothing.exr")
+
+
+def test_the_readme_figure_is_made_from_a_real_estimate(tmp_path):
+    from f2l.dev.readme_figure import make_figure
+
+    out = make_figure(tmp_path / "example.png")
+    sheet = np.asarray(Image.open(out))
+    assert sheet.ndim == 3 and sheet.shape[0] > 200 and sheet.shape[1] > 600
+    assert (Path(__file__).resolve().parents[1] / "docs" / "example.png").is_file()
