@@ -22,7 +22,20 @@ import numpy as np
 
 @dataclass(frozen=True)
 class LatLongGrid:
-    """A full-sphere lat-long grid of ``height`` rows and ``width`` columns (height even)."""
+    """A full-sphere lat-long grid of ``height`` rows and ``width`` columns (height even).
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> grid.shape, grid.size, grid.sky_rows
+    ((8, 16), 128, 4)
+    >>> round(float(grid.solid_angles.sum() / np.pi), 9)  # the texels tile the sphere: 4 pi
+    4.0
+    >>> round(float(grid.solid_angles[: grid.sky_rows].sum() / np.pi), 9)  # the sky: 2 pi
+    2.0
+    >>> grid.directions.shape, grid.directions_flat.shape
+    ((8, 16, 3), (128, 3))
+    >>> bool((grid.directions[: grid.sky_rows, :, 1] > 0).all())  # the first H/2 rows look up (+Y)
+    True
+    """
 
     height: int = 64
     width: int = 128
@@ -128,7 +141,13 @@ class LatLongGrid:
 
     # -- conversions -----------------------------------------------------------------------
     def direction_to_uv(self, directions: np.ndarray) -> np.ndarray:
-        """Map unit directions (..., 3) to (u, v) in [0, 1] (inverse of the texel formula)."""
+        """Map unit directions (..., 3) to (u, v) in [0, 1] (inverse of the texel formula).
+
+        The camera's viewing direction -Z is the centre of the image (u = v = 0.5):
+
+        >>> LatLongGrid(8, 16).direction_to_uv(np.array([0.0, 0.0, -1.0])).tolist()
+        [0.5, 0.5]
+        """
         d = np.asarray(directions, dtype=np.float64)
         x, y, z = d[..., 0], d[..., 1], d[..., 2]
         phi = np.arccos(np.clip(y, -1.0, 1.0))
@@ -136,14 +155,23 @@ class LatLongGrid:
         return np.stack([(theta / np.pi + 1.0) / 2.0, phi / np.pi], axis=-1)
 
     def direction_to_texel(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Row and column indices (int) of the texel containing each direction (..., 3)."""
+        """Row and column indices (int) of the texel containing each direction (..., 3).
+
+        >>> row, col = LatLongGrid(8, 16).direction_to_texel(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]))
+        >>> row.tolist(), col.tolist()  # the zenith is in row 0; +X (azimuth +pi/2) in column 12
+        ([0, 4], [15, 12])
+        """
         uv = self.direction_to_uv(directions)
         col = np.clip(np.floor(uv[..., 0] * self.width).astype(np.int64), 0, self.width - 1)
         row = np.clip(np.floor(uv[..., 1] * self.height).astype(np.int64), 0, self.height - 1)
         return row, col
 
     def angle_to_columns(self, angle_rad: float) -> float:
-        """Azimuth angle expressed in columns (W / 2 pi per radian)."""
+        """Azimuth angle expressed in columns (W / 2 pi per radian).
+
+        >>> LatLongGrid(64, 128).angle_to_columns(np.pi / 2)
+        32.0
+        """
         return angle_rad * self.width / (2.0 * np.pi)
 
 
@@ -151,6 +179,13 @@ def direction_from_angles(elevation_rad, azimuth_rad) -> np.ndarray:
     """Unit direction from elevation above the horizon and azimuth theta (grid convention).
 
     Azimuth 0 is the camera's viewing direction (-Z), +pi/2 is +X (camera right).
+
+    >>> np.round(direction_from_angles(0.0, 0.0), 9).tolist()  # on the horizon, straight ahead: -Z
+    [0.0, 0.0, -1.0]
+    >>> bool(np.allclose(direction_from_angles(0.0, np.pi / 2), [1.0, 0.0, 0.0]))
+    True
+    >>> direction_from_angles([0.0, np.pi / 2], [0.0, 0.0]).shape  # broadcasts
+    (2, 3)
     """
     elevation_rad = np.asarray(elevation_rad, dtype=np.float64)
     azimuth_rad = np.asarray(azimuth_rad, dtype=np.float64)
@@ -161,7 +196,12 @@ def direction_from_angles(elevation_rad, azimuth_rad) -> np.ndarray:
 
 
 def angles_from_direction(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(elevation_rad, azimuth_rad) of unit directions (..., 3); inverse of direction_from_angles."""
+    """(elevation_rad, azimuth_rad) of unit directions (..., 3); inverse of direction_from_angles.
+
+    >>> elevation, azimuth = angles_from_direction(direction_from_angles(0.5, -1.0))
+    >>> round(float(elevation), 9), round(float(azimuth), 9)
+    (0.5, -1.0)
+    """
     d = np.asarray(direction, dtype=np.float64)
     elevation = np.arcsin(np.clip(d[..., 1], -1.0, 1.0))
     azimuth = np.arctan2(d[..., 0], -d[..., 2])
@@ -174,6 +214,13 @@ def rotate_y(probe: np.ndarray, angle_rad: float) -> np.ndarray:
     A light at azimuth theta moves to theta - angle_rad (R_y maps theta to theta - angle), so the
     result is a column roll by -angle * W / (2 pi). Whole-column angles are an exact roll;
     fractional ones interpolate linearly between the two neighbouring rolls (periodic).
+
+    >>> probe = np.zeros((4, 8))
+    >>> probe[1, 4] = 1.0  # a light in column 4 (azimuth pi/8)
+    >>> int(np.argmax(rotate_y(probe, 2 * np.pi / 8)[1]))  # rotated by one column's angle
+    3
+    >>> rotate_y(probe, np.pi / 8)[1].tolist()  # half a column: split between two columns
+    [0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0]
     """
     probe = np.asarray(probe)
     width = probe.shape[1]

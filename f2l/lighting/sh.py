@@ -19,6 +19,14 @@ P_1^1(t) = +sqrt(1 - t^2)). The basis is orthonormal on the sphere. Low orders, 
 Coefficients are stored flat, k = l (l + 1) + m, K = (order + 1)^2, first axis of a (K, ...)
 array. The normalised Legendre values N_lm P_l^m are computed with the standard stable
 three-term recursion on the normalised functions (no factorials), valid for any order.
+
+Irradiance (``lambert_band_factors``, ``irradiance_coeffs``): convolution with the clamped cosine
+is a per-band scale A_l of the radiance coefficients (Ramamoorthi & Hanrahan 2001).
+
+References
+----------
+- Ramamoorthi, Hanrahan. "An Efficient Representation for Irradiance Environment Maps."
+  Proceedings of SIGGRAPH 2001, pp. 497-500.
 """
 
 from __future__ import annotations
@@ -46,20 +54,32 @@ __all__ = [
 
 
 def num_coeffs(order: int) -> int:
-    """Number of coefficients K = (order + 1)^2 for bands l = 0 .. order."""
+    """Number of coefficients K = (order + 1)^2 for bands l = 0 .. order.
+
+    >>> num_coeffs(2), num_coeffs(4)  # the SH9 and SH25 models
+    (9, 25)
+    """
     order = _check_order(order)
     return (order + 1) ** 2
 
 
 def sh_index(l: int, m: int) -> int:  # noqa: E741 - the usual SH name
-    """Flat index k = l (l + 1) + m of Y_lm (|m| <= l)."""
+    """Flat index k = l (l + 1) + m of Y_lm (|m| <= l).
+
+    >>> sh_index(0, 0), sh_index(1, -1), sh_index(1, 1), sh_index(2, 0)
+    (0, 1, 3, 6)
+    """
     if l < 0 or abs(m) > l:
         raise ValueError(f"invalid SH index l={l}, m={m}")
     return l * (l + 1) + m
 
 
 def sh_band_of_index(num: int) -> np.ndarray:
-    """Band l of each flat index 0 .. num - 1, shape (num,), int64."""
+    """Band l of each flat index 0 .. num - 1, shape (num,), int64.
+
+    >>> sh_band_of_index(9).tolist()
+    [0, 1, 1, 1, 2, 2, 2, 2, 2]
+    """
     return np.floor(np.sqrt(np.arange(num, dtype=np.float64)) + 1e-9).astype(np.int64)
 
 
@@ -106,6 +126,14 @@ def sh_basis(directions: np.ndarray, order: int) -> np.ndarray:
 
     Directions are normalised first (zero vectors give NaN). See the module docstring for the
     convention (polar axis +Y, theta = atan2(x, -z), no Condon-Shortley phase).
+
+    >>> y = sh_basis(np.array([0.0, 1.0, 0.0]), 1)  # at the zenith only m = 0 is non-zero
+    >>> y.shape, np.round(np.abs(y), 4).tolist()
+    ((4,), [0.2821, 0.0, 0.4886, 0.0])
+    >>> round(float(sh_basis(np.array([0.0, 0.0, -1.0]), 1)[3]), 4)  # Y_11 = -sqrt(3 / (4 pi)) z
+    0.4886
+    >>> sh_basis(np.ones((5, 7, 3)), 2).shape
+    (5, 7, 9)
     """
     order = _check_order(order)
     d = np.asarray(directions, dtype=np.float64)
@@ -147,6 +175,10 @@ def sh_basis_grid(grid: LatLongGrid, order: int) -> np.ndarray:
     """Y_k at the texel centres of ``grid``, shape (L, K), texels flattened row-major.
 
     Cached per (height, width, order); the returned array is read-only.
+
+    >>> basis = sh_basis_grid(LatLongGrid(8, 16), 2)
+    >>> basis.shape, basis.flags.writeable
+    ((128, 9), False)
     """
     return _sh_basis_grid_cached(int(grid.height), int(grid.width), _check_order(order))
 
@@ -193,6 +225,14 @@ def sh_texel_mean_grid(grid: LatLongGrid, order: int) -> np.ndarray:
     Ybar_k(texel) = (1 / dOmega) int_texel Y_k dOmega, computed separably: the azimuthal mean is
     the centre value times sinc(|m| dtheta / 2) (exact), the polar mean uses Gauss-Legendre in
     phi (to ~machine precision). Sum_texels Ybar_k dOmega = int Y_k dOmega exactly.
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> mean = sh_texel_mean_grid(grid, 2)
+    >>> mean.shape
+    (128, 9)
+    >>> integral = grid.solid_angles_flat @ mean  # int Y_00 = 2 sqrt(pi); the others integrate to 0
+    >>> round(float(integral[0]), 6), float(np.abs(integral[1:]).max()) < 1e-12
+    (3.544908, True)
     """
     return _sh_texel_mean_cached(int(grid.height), int(grid.width), _check_order(order))
 
@@ -210,6 +250,17 @@ def project(probe: np.ndarray, grid: LatLongGrid, order: int, quadrature: str = 
         of power P gives exactly P Y_k(centre); constants leak O((pi / H)^2) into even m = 0 bands.
     Both rules' azimuthal sums are exact for |m| < W / 2, so column rolls commute with
     ``rotate_y_coeffs`` exactly.
+
+    A constant radiance of 1 projects onto Y_00 alone, c_0 = 4 pi Y_00 = 2 sqrt(pi):
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> c = project(np.ones(grid.shape), grid, 2)
+    >>> c.shape, round(float(c[0]), 6), round(2 * float(np.sqrt(np.pi)), 6)
+    ((9,), 3.544908, 3.544908)
+    >>> float(np.abs(c[1:]).max()) < 1e-12
+    True
+    >>> project(np.ones((8, 16, 3)), grid, 1).shape  # RGB: one column per channel
+    (4, 3)
     """
     f = np.asarray(probe, dtype=np.float64)
     if f.shape[:2] != grid.shape or f.ndim not in (2, 3):
@@ -227,7 +278,13 @@ def project(probe: np.ndarray, grid: LatLongGrid, order: int, quadrature: str = 
 
 
 def reconstruct(coeffs: np.ndarray, grid: LatLongGrid) -> np.ndarray:
-    """Evaluate sum_k c_k Y_k at texel centres: (K, C) -> (H, W, C); (K,) -> (H, W). Float64."""
+    """Evaluate sum_k c_k Y_k at texel centres: (K, C) -> (H, W, C); (K,) -> (H, W). Float64.
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> probe = reconstruct(project(np.full(grid.shape, 3.0), grid, 2), grid)
+    >>> probe.shape, round(float(probe.min()), 9), round(float(probe.max()), 9)
+    ((8, 16), 3.0, 3.0)
+    """
     c = np.asarray(coeffs, dtype=np.float64)
     order = _order_of(c.shape[0])
     basis = sh_basis_grid(grid, order)
@@ -243,6 +300,9 @@ def lambert_band_factors(order: int) -> np.ndarray:
         A_0 = pi,  A_1 = 2 pi / 3,  A_l = 0 for odd l > 1, and for even l
         A_l = 2 pi (-1)^(l/2 - 1) / ((l + 2)(l - 1)) * l! / (2^l ((l/2)!)^2)
     (A_2 = pi/4, A_4 = -pi/24, A_6 = pi/64, ...).
+
+    >>> np.round(lambert_band_factors(4) / np.pi, 6).tolist()  # A_l / pi
+    [1.0, 0.666667, 0.25, 0.0, -0.041667]
     """
     order = _check_order(order)
     a = np.zeros(order + 1, dtype=np.float64)
@@ -260,6 +320,13 @@ def irradiance_coeffs(coeffs: np.ndarray, order: int | None = None) -> np.ndarra
     """Irradiance SH coefficients: E_lm = A_l L_lm, so E(n) = sum_k E_k Y_k(n).
 
     ``coeffs`` is (K, ...) radiance coefficients; ``order`` (if given) must match K.
+
+    A white furnace (radiance 1 everywhere) gives an irradiance of pi at every normal:
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> e = irradiance_coeffs(project(np.ones(grid.shape), grid, 2))
+    >>> round(float(e @ sh_basis(np.array([0.0, 1.0, 0.0]), 2) / np.pi), 9)
+    1.0
     """
     c = np.asarray(coeffs, dtype=np.float64)
     inferred = _order_of(c.shape[0])
@@ -277,6 +344,13 @@ def rotate_y_coeffs(coeffs: np.ndarray, angle_rad: float) -> np.ndarray:
         c' =  c cos(m a) + s sin(m a)
         s' = -c sin(m a) + s cos(m a)
     m = 0 coefficients are unchanged. ``coeffs`` is (K, ...).
+
+    Light along +X (azimuth +pi/2) rotated by +pi/2 moves to azimuth 0, the -Z direction:
+
+    >>> c = sh_basis(np.array([1.0, 0.0, 0.0]), 1)
+    >>> rotated = rotate_y_coeffs(c, np.pi / 2)
+    >>> bool(np.allclose(rotated, sh_basis(np.array([0.0, 0.0, -1.0]), 1)))
+    True
     """
     c = np.asarray(coeffs, dtype=np.float64)
     order = _order_of(c.shape[0])
