@@ -26,7 +26,19 @@ MIN_SKY_COVERAGE = 0.25
 def probe_problem(probe: np.ndarray, *, coverage: np.ndarray | None = None,
                   min_sky_coverage: float = MIN_SKY_COVERAGE) -> str | None:
     """The first reason ``probe`` (H, W, 3) cannot serve as a probe (module doc), or None.
-    ``coverage``: optional (H, W) mask of texels a camera saw."""
+    ``coverage``: optional (H, W) mask of texels a camera saw.
+
+    >>> print(probe_problem(np.ones((16, 32, 3))))
+    None
+    >>> probe_problem(np.zeros((16, 32, 3)))
+    'black: no light in the upper hemisphere'
+    >>> probe_problem(np.ones((16, 16, 3)))
+    'a 16x16 image is not a full-sphere lat-long probe (width = 2 x height, height even)'
+    >>> seen = np.zeros((16, 32), bool)
+    >>> seen[:2] = True  # the cameras saw only the two rows around the zenith
+    >>> probe_problem(np.ones((16, 32, 3)), coverage=seen)
+    'covers 7.6% of the upper hemisphere (at least 25% needed)'
+    """
     from f2l.lighting.grid import LatLongGrid
 
     p = np.asarray(probe)

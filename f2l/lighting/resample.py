@@ -57,12 +57,27 @@ def _column_matrix(width_out: int, width_in: int) -> np.ndarray:
 
 
 def row_overlap_matrix(height_out: int, height_in: int) -> np.ndarray:
-    """Row resampling matrix R (height_out, height_in), overlap in cos(phi); read-only."""
+    """Row resampling matrix R (height_out, height_in), overlap in cos(phi); read-only.
+
+    Halving 4 rows: each target row takes its two source rows in proportion to their solid angle
+    (the row nearer the horizon is the larger):
+
+    >>> np.round(row_overlap_matrix(2, 4), 3)
+    array([[0.293, 0.707, 0.   , 0.   ],
+           [0.   , 0.   , 0.707, 0.293]])
+    """
     return _row_matrix(_check_size(height_out, "height"), _check_size(height_in, "height"))
 
 
 def column_overlap_matrix(width_out: int, width_in: int) -> np.ndarray:
-    """Column resampling matrix C (width_out, width_in), overlap in theta; read-only."""
+    """Column resampling matrix C (width_out, width_in), overlap in theta; read-only.
+
+    >>> column_overlap_matrix(2, 4)
+    array([[0.5, 0.5, 0. , 0. ],
+           [0. , 0. , 0.5, 0.5]])
+    >>> column_overlap_matrix(3, 7).sum(axis=1).round(12).tolist()  # rows sum to 1
+    [1.0, 1.0, 1.0]
+    """
     return _column_matrix(_check_size(width_out, "width"), _check_size(width_in, "width"))
 
 
@@ -78,6 +93,17 @@ def resample(probe: np.ndarray, height: int, width: int) -> np.ndarray:
     Exact area averaging (see module docstring): preserves sum(L dOmega) per channel and
     constants. Computed in float64; float32/float16 input is returned in its own dtype, any
     other input as float64.
+
+    >>> from f2l.lighting.grid import LatLongGrid
+    >>> probe = np.random.default_rng(0).random((16, 32, 3)).astype(np.float32)
+    >>> small = resample(probe, 8, 16)
+    >>> small.shape, small.dtype
+    ((8, 16, 3), dtype('float32'))
+    >>> energy = lambda p: (p * LatLongGrid(*p.shape[:2]).solid_angles[..., None]).sum(axis=(0, 1))
+    >>> bool(np.allclose(energy(small), energy(probe), rtol=1e-5))  # sum(L dOmega) is kept
+    True
+    >>> np.unique(resample(np.full((4, 8), 2.0), 6, 10).round(12)).tolist()  # constants stay constant
+    [2.0]
     """
     src = np.asarray(probe)
     if src.ndim not in (2, 3):
@@ -111,7 +137,16 @@ class BandResampler:
     ``add(band)`` takes the next rows (b, width_in, C) of the source; ``result()`` returns the
     (height, width, C) float64 area average once every row has been added. Memory: the output
     plus one band and its column-resampled copy; columns are combined ``column_chunk`` source
-    columns at a time."""
+    columns at a time.
+
+    >>> probe = np.random.default_rng(1).random((16, 32, 3))
+    >>> bands = BandResampler(16, 32, 8, 16, channels=3)
+    >>> for top in range(0, 16, 4):
+    ...     bands.add(probe[top:top + 4])
+    >>> out = bands.result()
+    >>> out.shape, bool(np.allclose(out, resample(probe, 8, 16)))
+    ((8, 16, 3), True)
+    """
 
     def __init__(self, height_in: int, width_in: int, height: int, width: int, channels: int = 3,
                  column_chunk: int = 4096):

@@ -29,6 +29,13 @@ Accuracy (tests/test_sunsky.py): texel sums within ~3e-4 of 1 on 64 x 128 (2e-3 
 kappa in {8, 1024, 8192} at random suns, the zenith and the horizon; per texel within ~1e-4 of
 the peak texel's energy of brute-force supersampling (64 x 64 midpoints, or 16 x 16
 Gauss-Legendre nodes per texel).
+
+References
+----------
+- Fisher. "Dispersion on a Sphere." Proceedings of the Royal Society of London, Series A 217,
+  pp. 295-305, 1953 (the von Mises-Fisher distribution on the sphere).
+- Calian, Lalonde, Gotardo, Simon, Matthews, Mitchell. "From Faces to Outdoor Light Probes."
+  Computer Graphics Forum (Eurographics) 37(2), 2018 (the vMF sun of the Sun+Sky model, §3.3.2).
 """
 
 from __future__ import annotations
@@ -49,7 +56,14 @@ _GL_X, _GL_W = np.polynomial.legendre.leggauss(3)
 
 
 def vmf_normaliser(kappa: torch.Tensor) -> torch.Tensor:
-    """C(kappa) = kappa / (2 pi (1 - exp(-2 kappa))), stable for small and large kappa."""
+    """C(kappa) = kappa / (2 pi (1 - exp(-2 kappa))), stable for small and large kappa.
+
+    >>> kappa = torch.tensor([1e-9, 8192.0], dtype=torch.float64)
+    >>> [round(float(c), 6) for c in vmf_normaliser(kappa) * torch.tensor([4 * math.pi, 2 * math.pi / 8192])]
+    [1.0, 1.0]
+
+    (kappa -> 0: the uniform density 1 / (4 pi); large kappa: kappa / (2 pi).)
+    """
     return kappa / (2.0 * math.pi * -torch.expm1(-2.0 * kappa))
 
 
@@ -65,6 +79,13 @@ def column_factor(a: torch.Tensor, b: torch.Tensor, w: float) -> tuple[torch.Ten
     For sqrt(a/2) w < SMALL_Z (a ~ 0, at a pole) D's difference would cancel, so there the series
     K = w exp((a b w)^2 / 24 - a w^2 / 24) is used instead (D = 1); every branch is fed safe
     inputs, so the unused one never makes a NaN gradient.
+
+    With a = 0 (the sun at a pole) the integral is the column's width:
+
+    >>> zero = torch.tensor(0.0, dtype=torch.float64)
+    >>> log_scale, d = column_factor(zero, zero, 0.1)
+    >>> round(float(torch.exp(log_scale) * d), 9)
+    0.1
     """
     small = torch.sqrt(0.5 * a) * w < SMALL_Z
     a_s = torch.where(small, torch.ones_like(a), a)
@@ -118,6 +139,15 @@ def sun_lobe_sparse(
     Indices are row-major into the first ``n_rows`` rows; within a sun they are distinct, except
     padding entries (value 0, index 0) when suns need windows of different sizes, so scatter
     with *add*. See :func:`sun_lobe` for the arguments.
+
+    >>> grid = LatLongGrid(32, 64)
+    >>> one = lambda v: torch.tensor([v], dtype=torch.float64)
+    >>> vals, flat = sun_lobe_sparse(grid, one(1.0), one(0.5), one(1024.0))
+    >>> vals.shape == flat.shape, vals.shape[1] < grid.size  # only the window around the sun
+    (True, True)
+    >>> sa = torch.tensor(grid.solid_angles_flat)
+    >>> round(float((vals[0] * sa[flat[0]]).sum()), 3)  # the window holds the lobe's unit energy
+    1.0
     """
     H, W = grid.shape
     n_rows = H if n_rows is None else int(n_rows)
@@ -176,6 +206,18 @@ def sun_lobe(
     kappa > 0, all (B,) tensors (float64 recommended). ``n_rows`` limits the output to the
     first rows (e.g. ``grid.sky_rows``); default all H rows, whose sum of texel means times
     solid angles is the lobe's energy, 1.
+
+    >>> grid = LatLongGrid(32, 64)
+    >>> t = lambda *v: torch.tensor(v, dtype=torch.float64)
+    >>> lobe = sun_lobe(grid, t(1.0, 0.3), t(0.5, -2.0), t(8.0, 8192.0))  # a wide and a narrow sun
+    >>> lobe.shape
+    torch.Size([2, 2048])
+    >>> (lobe * torch.tensor(grid.solid_angles_flat)).sum(dim=1).round(decimals=3).tolist()
+    [1.0, 1.0]
+    >>> from f2l.lighting.grid import direction_from_angles
+    >>> sun = direction_from_angles(np.pi / 2 - 0.3, -2.0)  # elevation = pi/2 - zenith angle
+    >>> divmod(int(lobe[1].argmax()), grid.width) == tuple(int(i) for i in grid.direction_to_texel(sun))
+    True
     """
     n_rows = grid.height if n_rows is None else int(n_rows)
     out = sun_zenith_rad.new_zeros(sun_zenith_rad.shape[0], n_rows * grid.width)
