@@ -88,7 +88,14 @@ COLMAP_EXTRA_PARAM_MAX = 1e3
 
 class LensError(ValueError):
     """A lens description that cannot place the view; the message names the key, ``key`` holds
-    it (the lens key, e.g. ``focal_length_px`` or ``falloff``; "" when none applies)."""
+    it (the lens key, e.g. ``focal_length_px`` or ``falloff``; "" when none applies).
+
+    >>> try:
+    ...     lens_from_view({"projection": "rectilinear"}, 400, 300)
+    ... except LensError as error:
+    ...     print(error.key)
+    focal_length_px
+    """
 
     def __init__(self, message: str, key: str = "") -> None:
         super().__init__(message)
@@ -99,7 +106,12 @@ class LensError(ValueError):
 class Falloff:
     """``model`` "polynomial" (``coefficients``, ``radius_px``), "cos4" or "flat_field" (``file``,
     a path relative to the capture root; ``outside_allowed``: ingest ran with ``--allow-outside``
-    and recorded the path as the user gave it)."""
+    and recorded the path as the user gave it).
+
+    >>> lens_from_view({"projection": "equidistant", "fov_deg": 180.0,
+    ...                 "vignetting": [-0.2, 0.0, 0.0]}, 400, 300).falloff  # the earlier key
+    Falloff(model='polynomial', coefficients=(-0.2, 0.0, 0.0), radius_px=250.0, file=None, outside_allowed=False)
+    """
 
     model: str
     coefficients: tuple[float, ...] = ()
@@ -111,7 +123,22 @@ class Falloff:
 @dataclass(frozen=True)
 class Lens:
     """A full-frame camera model (``model``, ``params`` in pycolmap's order), its image-circle half
-    angle (None: limited by the frame only) and its fall-off."""
+    angle (None: limited by the frame only) and its fall-off.
+
+    A 90° rectilinear lens on a 400 x 300 frame: the principal point (the frame's centre) sees
+    along the optical axis (-Z in f2l's camera frame), the frame's right edge 45° off it.
+
+    >>> lens = lens_from_view({"projection": "rectilinear", "fov_deg": 90.0}, 400, 300)
+    >>> lens.model, [round(p, 6) for p in lens.params], lens.principal_point
+    ('PINHOLE', [200.0, 200.0, 200.0, 150.0], (200.0, 150.0))
+    >>> camera = lens.view_camera(400, 300)
+    >>> direction, valid = camera.pixel_to_cam_direction([lens.principal_point])
+    >>> bool(np.allclose(direction, [[0.0, 0.0, -1.0]])), valid.tolist()
+    (True, [True])
+    >>> direction, _ = camera.pixel_to_cam_direction([[400.0, 150.0]])
+    >>> round(math.degrees(math.acos(-direction[0, 2])), 6)
+    45.0
+    """
 
     model: str
     params: tuple[float, ...]
@@ -128,7 +155,16 @@ class Lens:
     def view_camera(self, view_width: int, view_height: int, k: int = 1, crop_x: int = 0, crop_y: int = 0,
                     **pose_deg) -> ViewCamera:
         """The camera of a view box-averaged by ``k`` after dropping ``crop_x``/``crop_y`` full-frame
-        pixels on the left/top: focal lengths / k, principal point (c − crop) / k."""
+        pixels on the left/top: focal lengths / k, principal point (c − crop) / k.
+
+        >>> lens = lens_from_view({"projection": "equidistant", "fov_deg": 180.0}, 400, 300)
+        >>> camera = lens.view_camera(200, 150, k=2)  # the view box-averaged by 2
+        >>> [round(p, 4) for p in camera.params[:4]]  # fx, fy, cx, cy halved
+        [47.7465, 47.7465, 100.0, 75.0]
+        >>> direction, _ = camera.pixel_to_cam_direction([[100.0, 75.0]])
+        >>> bool(np.allclose(direction, [[0.0, 0.0, -1.0]]))
+        True
+        """
         base = ViewCamera.from_model(self.model, self.width, self.height, self.params).colmap
         params = list(self.params)
         for i in base.focal_length_idxs():
@@ -142,7 +178,18 @@ class Lens:
              root: Path | None = None) -> np.ndarray | None:
         """(h, w) float32 fall-off gain at the view's pixel centres (``camera`` from
         :meth:`view_camera`), 1 where the lens sees nothing; None without a fall-off model.
-        LensError where a pixel that sees the scene has gain <= 0 or not finite."""
+        LensError where a pixel that sees the scene has gain <= 0 or not finite.
+
+        Natural fall-off, cos⁴ of the angle off the axis (1 at the centre):
+
+        >>> lens = lens_from_view({"projection": "rectilinear", "fov_deg": 90.0, "falloff": {"model": "cos4"}},
+        ...                       40, 30)
+        >>> gain = lens.gain(lens.view_camera(40, 30))
+        >>> gain.shape, gain.dtype, round(float(gain[15, 0]), 3), round(math.cos(math.atan(19.5 / 20)) ** 4, 3)
+        ((30, 40), dtype('float32'), 0.263, 0.263)
+        >>> print(lens_from_view({"projection": "rectilinear", "fov_deg": 90.0}, 40, 30).gain(None))
+        None
+        """
         f = self.falloff
         if f is None:
             return None
@@ -192,7 +239,16 @@ def flat_field_path(falloff: Falloff, root: str | os.PathLike | None) -> Path:
     """The file of a flat-field fall-off: ``root / file`` (``root`` the capture root), refused
     (LensError) where ``file`` is absolute, climbs with ``..`` or resolves (symlinks followed)
     outside ``root``, unless ``falloff.outside_allowed``; ``file`` itself when ``root`` is None
-    (a caller's own path)."""
+    (a caller's own path).
+
+    >>> flat_field_path(Falloff("flat_field", file="flat.exr"), "/data/session").as_posix()
+    '/data/session/flat.exr'
+    >>> try:
+    ...     flat_field_path(Falloff("flat_field", file="../flat.exr"), "/data/session")
+    ... except LensError as error:
+    ...     print(error)
+    falloff file '../flat.exr' leaves the capture folder (f2l ingest --allow-outside allows it)
+    """
     name = str(falloff.file)
     if root is None:
         return Path(name)
@@ -314,7 +370,24 @@ def _falloff(view: dict, circle_px: float | None, width: int, height: int) -> Fa
 
 def lens_from_view(view: dict, width: int, height: int, exif_focal_mm: float | None = None) -> Lens:
     """The :class:`Lens` a row's ``view_json`` describes for a full frame of ``width`` × ``height``
-    px (LensError naming the missing, inconsistent or implausible key: module doc)."""
+    px (LensError naming the missing, inconsistent or implausible key: module doc).
+
+    An 8 mm equisolid fisheye on a 36 mm-wide, 600 px frame (f = 133.3 px) with a 150 px image
+    circle sees 2 asin(150 / (2 f)) = 68.5° off its axis:
+
+    >>> lens = lens_from_view({"projection": "equisolid", "focal_length_mm": 8.0, "sensor_width_mm": 36.0,
+    ...                        "image_circle_radius_px": 150}, 600, 400)
+    >>> lens.model, [round(p, 4) for p in lens.params[:4]], round(lens.max_angle_deg, 3)
+    ('OPENCV_FISHEYE', [133.3333, 133.3333, 300.0, 200.0], 68.458)
+    >>> lens_from_view({"colmap_model": "opencv_fisheye", "colmap_params": [100, 100, 210, 150, 0, 0, 0, 0]},
+    ...                400, 300).principal_point
+    (210.0, 150.0)
+    >>> try:
+    ...     lens_from_view({"projection": "fisheye"}, 400, 300)
+    ... except LensError as error:
+    ...     print(error.key)
+    projection
+    """
     _check_frame(width, height)
     circle_range = tuple(f * max(width, height) for f in IMAGE_CIRCLE_PER_LONG_SIDE)
     if "colmap_model" in view:

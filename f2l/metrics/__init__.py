@@ -15,6 +15,11 @@ Sun metrics are NaN for overcast ground truth. :func:`summarise` aggregates rows
 :data:`MEDIAN_METRICS`, and, where rows carry sun shares (:mod:`f2l.metrics.sun_share`), the
 overcast faces whose estimated sun share exceeds the ground truth's by more than 0.1);
 :func:`to_markdown` / :func:`to_csv` / :func:`summary_records` write the table.
+
+References
+----------
+- Calian, Lalonde, Gotardo, Simon, Matthews, Mitchell. "From Faces to Outdoor Light Probes."
+  Computer Graphics Forum (Eurographics) 37(2), 2018 (§5.1: the evaluation metrics).
 """
 
 from __future__ import annotations
@@ -103,6 +108,15 @@ def evaluate_pair(
     """All seven metrics (keys :data:`METRIC_NAMES`, in order) for one probe pair (H, W, 3).
 
     ``grid`` defaults to ``LatLongGrid(H, W)``; ``overcast=None`` uses :func:`is_overcast` on gt.
+
+    >>> gt = np.ones((8, 16, 3))  # a small grid keeps the rendering scene quick to build
+    >>> gt[1, 5] = 500.0
+    >>> metrics = evaluate_pair(2.0 * gt, gt)  # right up to scale: every metric is 0
+    >>> list(metrics) == list(METRIC_NAMES), max(round(v, 4) for v in metrics.values())
+    (True, 0.0)
+    >>> metrics = evaluate_pair(np.ones((8, 16, 3)), gt)  # the sun missed
+    >>> round(metrics["Sun-dω MAE (l)"], 3), round(metrics["Sun-ang (°)"], 2)
+    (1.152, 38.96)
     """
     gt_probe = np.asarray(gt_probe)
     if grid is None:
@@ -167,7 +181,17 @@ def _has_sun_shares(rows: list[dict]) -> bool:
 def summarise(rows: list[dict], by: str = "model") -> SummaryTable:
     """Mean ± std (and median) per ``row[by]`` of each metric (and ``runtime_s``); NaN/None/±inf
     are ignored and each cell keeps the count of values it used. Rows with ``gt_overcast``,
-    ``sun_share_est`` and ``sun_share_gt`` also give each group its :class:`OvercastExcess`."""
+    ``sun_share_est`` and ``sun_share_gt`` also give each group its :class:`OvercastExcess`.
+
+    >>> rows = [{"model": "a", "MAE (s)": 0.1}, {"model": "a", "MAE (s)": 0.3},
+    ...         {"model": "a", "MAE (s)": float("nan")}, {"model": "b", "MAE (s)": 0.2}]
+    >>> table = summarise(rows)
+    >>> table.metrics, table.n_rows
+    (['MAE (s)'], {'a': 3, 'b': 1})
+    >>> s = table.groups["a"]["MAE (s)"]
+    >>> round(s.mean, 6), round(s.std, 6), s.count  # NaN is left out
+    (0.2, 0.141421, 2)
+    """
     present = [m for m in METRIC_NAMES if any(m in r for r in rows)]
     if any(RUNTIME_KEY in r for r in rows):
         present.append(RUNTIME_KEY)
@@ -210,7 +234,17 @@ def to_markdown(table: SummaryTable) -> str:
     used fewer values than the group has rows (e.g. sun metrics without overcast faces). Then one
     ``median <metric>`` column per ``table.medians`` and, when ``table.overcast`` is set, the
     overcast faces exceeding the gt sun share by the margin (``k/n (fraction)``) and the largest
-    excess; ``—`` where a group has no value."""
+    excess; ``—`` where a group has no value.
+
+    >>> rows = [{"model": "a", "MAE (s)": 0.1}, {"model": "a", "MAE (s)": 0.3},
+    ...         {"model": "b", "MAE (s)": 0.2, "runtime_s": 1.5}]
+    >>> print(to_markdown(summarise(rows)))
+    | model | n | MAE (s) | runtime_s |
+    |---|---|---|---|
+    | a | 2 | 0.2 ± 0.1414 | — |
+    | b | 1 | 0.2 | 1.5 |
+    <BLANKLINE>
+    """
     head = [table.by, "n", *table.metrics, *(f"median {m}" for m in table.medians)]
     if table.overcast:
         head += [_EXCESS_HEAD, _MAX_EXCESS_HEAD]
@@ -230,7 +264,11 @@ def summary_records(table: SummaryTable) -> list[dict]:
     <metric> n`` for each metric, ``<metric> median`` for each of ``table.medians`` and, when
     ``table.overcast`` is set, ``overcast n``, ``overcast sun share excess count`` (est share >
     gt share + 0.1), ``overcast sun share excess fraction`` and ``overcast sun share excess max``
-    (max of est − gt share). Missing values are NaN."""
+    (max of est − gt share). Missing values are NaN.
+
+    >>> summary_records(summarise([{"model": "a", "MAE (s)": 0.5}]))
+    [{'model': 'a', 'n': 1, 'MAE (s) mean': 0.5, 'MAE (s) std': nan, 'MAE (s) n': 1}]
+    """
     records = []
     for g, stats in table.groups.items():
         rec: dict = {table.by: g, "n": table.n_rows[g]}
@@ -251,7 +289,16 @@ def summary_records(table: SummaryTable) -> list[dict]:
 
 def to_csv(table: SummaryTable, path: str | os.PathLike) -> Path:
     """Write :func:`summary_records` as a CSV (UTF-8; floats as ``repr``, NaN as ``nan``);
-    written to a temporary name then renamed. Returns the path."""
+    written to a temporary name then renamed. Returns the path.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     path = to_csv(summarise([{"model": "a", "MAE (s)": 0.5}]), Path(tmp) / "summary.csv")
+    ...     print(path.read_text(encoding="utf-8"))
+    model,n,MAE (s) mean,MAE (s) std,MAE (s) n
+    a,1,0.5,nan,1
+    <BLANKLINE>
+    """
     path = Path(path)
     records = summary_records(table)
     hdr = list(records[0]) if records else [table.by, "n"]

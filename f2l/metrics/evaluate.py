@@ -25,7 +25,19 @@ from f2l.io.atomic import atomic_path, write_text_atomic
 
 
 def ground_truth_index(shards: list[Path]) -> dict[str, dict]:
-    """face_id -> {probe: absolute path or None, meta: dict}, reading only the small columns."""
+    """face_id -> {probe: absolute path or None, meta: dict}, reading only the small columns.
+
+    >>> import tempfile, pyarrow as pa
+    >>> table = pa.table({"face_id": ["f1", "f2"], "gt_probe_path": ["probes/f1.exr", None],
+    ...                   "meta_json": ['{"sky": {"kind": "overcast"}}', None]})
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     pq.write_table(table, Path(tmp) / "part-0.parquet")
+    ...     index = ground_truth_index([Path(tmp)])
+    ...     index["f1"]["probe"] == str(Path(tmp) / "probes/f1.exr")
+    True
+    >>> index["f1"]["meta"], index["f2"]
+    ({'sky': {'kind': 'overcast'}}, {'probe': None, 'meta': {}})
+    """
     index: dict[str, dict] = {}
     for shard in shards:
         shard = Path(shard)

@@ -11,6 +11,12 @@ the metric values and keyword names ending in ``_deg``.
 * ``dω-MAE(R) = Σ_{ω∈R, c} |l̂_c(ω) − l*_c(ω)| dΩ / (3 Σ_{ω∈R} dΩ)`` on normalised probes;
 * regions: Full = upper; Sun = upper ∩ cap(13°) around the centre of the brightest (max Y)
   upper texel of the ground truth; Sky = Full \\ Sun. Cap membership is by texel centre.
+
+References
+----------
+- Calian, Lalonde, Gotardo, Simon, Matthews, Mitchell. "From Faces to Outdoor Light Probes."
+  Computer Graphics Forum (Eurographics) 37(2), 2018 (§5.1: the lighting metrics "(l)" and the
+  sun angle).
 """
 
 from __future__ import annotations
@@ -44,13 +50,24 @@ PROBE_METRIC_NAMES = ("Full-dω MAE (l)", "Sky-dω MAE (l)", "Sun-dω MAE (l)", 
 
 
 def upper_energy(probe: np.ndarray, grid: LatLongGrid) -> float:
-    """``Σ_{ω∈upper, c} l_c(ω) dΩ``."""
+    """``Σ_{ω∈upper, c} l_c(ω) dΩ``.
+
+    >>> round(upper_energy(np.ones((16, 32, 3)), LatLongGrid(16, 32)) / np.pi, 9)  # 3 channels x 2 pi
+    6.0
+    """
     p = _check(probe, grid)
     return float(np.sum(p.sum(-1) * grid.solid_angles * grid.upper_mask))
 
 
 def normalise_probe(probe: np.ndarray, grid: LatLongGrid) -> np.ndarray:
-    """Scale ``probe`` so that ``Σ_{ω∈upper, c} l_c(ω) dΩ = 1`` (float64, all-zero if energy <= 0)."""
+    """Scale ``probe`` so that ``Σ_{ω∈upper, c} l_c(ω) dΩ = 1`` (float64, all-zero if energy <= 0).
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> round(upper_energy(normalise_probe(np.full((16, 32, 3), 7.0), grid), grid), 9)
+    1.0
+    >>> float(np.abs(normalise_probe(np.zeros((16, 32, 3)), grid)).max())
+    0.0
+    """
     p = _check(probe, grid)
     e = upper_energy(p, grid)
     if not np.isfinite(e):
@@ -61,7 +78,14 @@ def normalise_probe(probe: np.ndarray, grid: LatLongGrid) -> np.ndarray:
 def sun_energy_fraction(
     probe: np.ndarray, grid: LatLongGrid, radius_deg: float = SUN_CAP_DEG
 ) -> float:
-    """Fraction of the upper energy ``Σ_c l_c dΩ`` inside the cap around the brightest upper texel."""
+    """Fraction of the upper energy ``Σ_c l_c dΩ`` inside the cap around the brightest upper texel.
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> clear = np.ones((16, 32, 3))
+    >>> clear[3, 20] = 2000.0  # a sun
+    >>> round(sun_energy_fraction(clear, grid), 3), round(sun_energy_fraction(np.ones((16, 32, 3)), grid), 3)
+    (0.889, 0.032)
+    """
     p = _check(probe, grid)
     _, d0 = brightest_direction(p, grid)
     e = p.sum(-1) * grid.solid_angles * grid.upper_mask
@@ -81,12 +105,26 @@ def is_overcast(
 
     A uniform sky scores ``1 − cos 13° ≈ 0.026`` (overcast); a clear sky whose sun carries at least
     15% of the upper-hemisphere energy is not overcast. A probe with no energy is overcast.
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> clear = np.ones((16, 32, 3))
+    >>> clear[3, 20] = 2000.0
+    >>> is_overcast(np.ones((16, 32, 3)), grid), is_overcast(clear, grid), is_overcast(np.zeros((16, 32, 3)), grid)
+    (True, False, True)
     """
     return sun_energy_fraction(probe, grid, radius_deg) < threshold
 
 
 def weighted_mae(a: np.ndarray, b: np.ndarray, grid: LatLongGrid, region: np.ndarray) -> float:
-    """``Σ_{ω∈R, c} |a − b| dΩ / (3 Σ_{ω∈R} dΩ)``; NaN for an empty region."""
+    """``Σ_{ω∈R, c} |a − b| dΩ / (3 Σ_{ω∈R} dΩ)``; NaN for an empty region.
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> a, b = np.zeros((16, 32, 3)), np.full((16, 32, 3), 0.5)
+    >>> round(weighted_mae(a, b, grid, grid.upper_mask), 9)
+    0.5
+    >>> weighted_mae(a, b, grid, np.zeros((16, 32), bool))
+    nan
+    """
     sa = grid.solid_angles * region
     den = 3.0 * float(sa.sum())
     if den <= 0:
@@ -95,7 +133,11 @@ def weighted_mae(a: np.ndarray, b: np.ndarray, grid: LatLongGrid, region: np.nda
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle between two directions in degrees (atan2 form, accurate near 0°)."""
+    """Angle between two directions in degrees (atan2 form, accurate near 0°).
+
+    >>> angle_deg([1.0, 0.0, 0.0], [0.0, 2.0, 0.0]), angle_deg([0.0, 0.0, -1.0], [0.0, 0.0, -1.0])
+    (90.0, 0.0)
+    """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     a = a / np.linalg.norm(a)
@@ -118,6 +160,16 @@ def probe_metrics(
     ``est_sun_dir`` / ``gt_sun_dir`` (unit vectors, grid frame) to use explicit ones (they affect
     Sun-ang only; the Sun/Sky regions always centre on gt's brightest texel).
     Raises ``ValueError`` if ``gt`` has no positive upper-hemisphere energy.
+
+    The probe metrics ignore scale; an overcast ground truth has no sun metrics:
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> clear = np.ones((16, 32, 3))
+    >>> clear[3, 20] = 2000.0
+    >>> {name: round(value, 9) for name, value in probe_metrics(5.0 * clear, clear, grid).items()}
+    {'Full-dω MAE (l)': 0.0, 'Sky-dω MAE (l)': 0.0, 'Sun-dω MAE (l)': 0.0, 'Sun-ang (°)': 0.0}
+    >>> probe_metrics(clear, np.ones((16, 32, 3)), grid)["Sun-ang (°)"]
+    nan
     """
     est = _check(est, grid)
     gt = _check(gt, grid)

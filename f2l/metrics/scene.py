@@ -43,6 +43,11 @@ half-angle ``asin(1 / |c - x_p|)`` plus 0.01 rad (the mesh lies inside the unit 
 
 The dense ``float32`` matrix ``T`` (scene pixels × texels, ~8,000 × 8,192 ≈ 260 MB on the default
 grid) is built once per grid size and cached in-process (:func:`evaluation_scene`).
+
+References
+----------
+- Calian, Lalonde, Gotardo, Simon, Matthews, Mitchell. "From Faces to Outdoor Light Probes."
+  Computer Graphics Forum (Eurographics) 37(2), 2018 (§5.1: the scene of the rendering metrics "(s)").
 """
 
 from __future__ import annotations
@@ -98,6 +103,12 @@ class EvaluationScene:
     ``mask`` (h, w) marks scene pixels; the ``P = mask.sum()`` scene pixels are in row-major order
     of the image. ``points``/``normals`` (P, 3) float64, ``albedo`` and ``is_sphere`` (P,), and
     ``transport`` (P, L) float32 with ``I = transport @ probe.reshape(L, 3)``.
+
+    >>> scene = evaluation_scene(LatLongGrid(8, 16))  # a small grid: quick to build
+    >>> scene.image_shape, scene.transport.shape, scene.points.shape
+    ((96, 96), (7968, 128), (7968, 3))
+    >>> float(np.abs(scene.render_pixels(np.zeros((8, 16, 3)))).max())  # no light, no image
+    0.0
     """
 
     grid: LatLongGrid
@@ -132,7 +143,14 @@ class EvaluationScene:
 
 
 def camera_rays() -> tuple[np.ndarray, np.ndarray]:
-    """Camera centre (3,) and unit ray directions (IMAGE_SIZE, IMAGE_SIZE, 3), float64."""
+    """Camera centre (3,) and unit ray directions (IMAGE_SIZE, IMAGE_SIZE, 3), float64.
+
+    >>> eye, rays = camera_rays()
+    >>> np.round(eye, 4).tolist(), rays.shape  # 5 units from the sphere's centre, 15° above it
+    ([0.0, 2.2941, 4.8296], (96, 96, 3))
+    >>> bool(np.allclose(np.linalg.norm(rays, axis=-1), 1.0)), bool((rays[..., 2] < 0).all())  # along -Z
+    (True, True)
+    """
     c = np.asarray(SPHERE_CENTRE, dtype=np.float64)
     el = math.radians(CAMERA_ELEVATION_DEG)
     back = np.array([0.0, math.sin(el), math.cos(el)])
@@ -255,7 +273,12 @@ def _cached(height: int, width: int) -> EvaluationScene:
 
 
 def evaluation_scene(grid: LatLongGrid) -> EvaluationScene:
-    """The evaluation scene with its transport on ``grid`` (built once, cached in-process)."""
+    """The evaluation scene with its transport on ``grid`` (built once, cached in-process).
+
+    >>> grid = LatLongGrid(8, 16)
+    >>> evaluation_scene(grid) is evaluation_scene(grid)
+    True
+    """
     return _cached(grid.height, grid.width)
 
 
@@ -267,6 +290,15 @@ def render_scene(
     Returns ``(image, mask)``: image (96, 96, 3) float32 linear radiance ``I_p = Σ_ω T[p, ω] l(ω)``
     with background pixels set to 0, and mask (96, 96) bool (True = scene surface).
     ``grid`` defaults to ``LatLongGrid(H, W)`` from the probe's shape.
+
+    >>> image, mask = render_scene(np.ones((8, 16, 3)))  # uniform light on a small grid
+    >>> image.shape, image.dtype, mask.shape
+    ((96, 96, 3), dtype('float32'), (96, 96))
+    >>> bool(mask[:12].any()), float(image[~mask].max())  # the top rows are background (0)
+    (False, 0.0)
+    >>> image2, _ = render_scene(2.0 * np.ones((8, 16, 3)))
+    >>> bool(np.allclose(image2, 2.0 * image))  # rendering is linear in the probe
+    True
     """
     probe = np.asarray(probe)
     if grid is None:

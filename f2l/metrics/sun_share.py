@@ -34,7 +34,14 @@ GT_OVERCAST = "gt_overcast"
 
 
 def sun_shares(est: np.ndarray, gt: np.ndarray, grid: LatLongGrid) -> dict[str, float]:
-    """``{sun_share_est, sun_share_gt}``: the sun energy share of each (H, W, 3) probe."""
+    """``{sun_share_est, sun_share_gt}``: the sun energy share of each (H, W, 3) probe.
+
+    >>> grid = LatLongGrid(16, 32)
+    >>> est = np.ones((16, 32, 3))
+    >>> est[3, 20] = 2000.0  # an estimate with a sun under an overcast (uniform) ground truth
+    >>> {name: round(share, 3) for name, share in sun_shares(est, np.ones((16, 32, 3)), grid).items()}
+    {'sun_share_est': 0.889, 'sun_share_gt': 0.032}
+    """
     return {SUN_SHARE_EST: sun_energy_fraction(est, grid), SUN_SHARE_GT: sun_energy_fraction(gt, grid)}
 
 
@@ -49,7 +56,11 @@ class OvercastExcess:
 
     @property
     def fraction(self) -> float:
-        """``exceed / n`` (NaN if n = 0)."""
+        """``exceed / n`` (NaN if n = 0).
+
+        >>> OvercastExcess(4, 1, 0.3).fraction, OvercastExcess(0, 0, math.nan).fraction
+        (0.25, nan)
+        """
         return self.exceed / self.n if self.n else math.nan
 
 
@@ -63,7 +74,17 @@ def _finite(v) -> float:
 
 def overcast_excess(rows: list[dict], margin: float = SUN_SHARE_MARGIN) -> OvercastExcess:
     """:class:`OvercastExcess` of the rows whose ``gt_overcast`` is a true bool (rows without
-    both finite shares are left out)."""
+    both finite shares are left out).
+
+    >>> rows = [
+    ...     {"gt_overcast": True, "sun_share_est": 0.40, "sun_share_gt": 0.05},   # exceeds by 0.35
+    ...     {"gt_overcast": True, "sun_share_est": 0.10, "sun_share_gt": 0.05},   # within the margin
+    ...     {"gt_overcast": False, "sun_share_est": 0.90, "sun_share_gt": 0.80},  # clear: not counted
+    ... ]
+    >>> excess = overcast_excess(rows)
+    >>> excess.n, excess.exceed, round(excess.max_excess, 6), excess.fraction
+    (2, 1, 0.35, 0.5)
+    """
     excess = []
     for r in rows:
         flag = r.get(GT_OVERCAST)

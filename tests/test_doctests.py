@@ -1,0 +1,30 @@
+"""The doctest examples of f2l.lighting, f2l.metrics and f2l.capture.lens run (issue 41, item 5).
+
+Every module of those packages must carry at least one example, so this cannot pass vacuously.
+"""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+import pkgutil
+
+import pytest
+
+import f2l.lighting
+import f2l.metrics
+
+
+def _modules(package) -> list[str]:
+    return [package.__name__] + [f"{package.__name__}.{m.name}" for m in pkgutil.iter_modules(package.__path__)]
+
+
+MODULES = [*_modules(f2l.lighting), *_modules(f2l.metrics), "f2l.capture.lens"]
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_doctests(name):
+    module = importlib.import_module(name)
+    result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, verbose=False)
+    assert result.attempted > 0, f"{name} has no doctest examples"
+    assert result.failed == 0, f"{result.failed} of {result.attempted} doctest examples failed in {name}"
