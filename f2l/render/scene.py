@@ -18,6 +18,11 @@ texel.
 The integrator is Mitsuba's ``path`` (max depth 6: skin–skin, skin–shoulder bounces);
 ``max_depth=2`` is direct light only (the "no interreflection" ablation). An ``aov`` pass of depth
 gives the head's image mask.
+
+References
+----------
+- Hosek, Wilkie. "An Analytic Model for Full Spectral Sky-Dome Radiance." ACM Transactions on
+  Graphics 31(4) (SIGGRAPH 2012) (the sky of Mitsuba 3's ``sunsky``, used here, not reimplemented).
 """
 
 from __future__ import annotations

@@ -32,6 +32,17 @@ the Kasten-Young air mass, hence warmer and dimmer at low elevation.
 Absolute scale: the sky's horizontal irradiance (luminance) is r(t) times the sun's luminance at
 normal incidence, r(t) = 0.15 + 0.025 (t - 2) clamped to [0.15, 0.25] for turbidity t (hazier
 skies are relatively brighter).
+
+References
+----------
+- ISO 15469:2004(E) / CIE S 011/E:2003. "Spatial Distribution of Daylight - CIE Standard General
+  Sky." (the clear sky, type 12, and the CIE overcast sky).
+- Kasten, Young. "Revised Optical Air Mass Tables and Approximation Formula." Applied Optics
+  28(22), pp. 4735-4738, 1989 (the air mass).
+- Preetham, Shirley, Smits. "A Practical Analytic Model for Daylight." Proceedings of
+  SIGGRAPH 99, pp. 91-100, 1999 (the Angstrom coefficient of turbidity).
+- Fisher. "Dispersion on a Sphere." Proceedings of the Royal Society of London, Series A 217,
+  pp. 295-305, 1953 (the von Mises-Fisher sun lobe).
 """
 
 from __future__ import annotations

@@ -42,6 +42,13 @@ radiance ~5 ms forward (median of runs 4.7-8 ms), ~14-17 ms forward + backward o
 sum; the sky is ~2 ms of the forward, the lobe ~2 ms (per-op overhead of small tensors). The
 machine has slow spells (up to ~15x). Measure with ``timeit`` on ``model.radiance`` of
 ``torch.as_tensor(model.initial_points()[:8])``; ``f2l dev bench`` times whole estimates.
+
+References
+----------
+- Calian, Lalonde, Gotardo, Simon, Matthews, Mitchell. "From Faces to Outdoor Light Probes."
+  Computer Graphics Forum (Eurographics) 37(2), 2018 (§3.3.2: the Sun+Sky model).
+- Preetham, Shirley, Smits. "A Practical Analytic Model for Daylight." Proceedings of
+  SIGGRAPH 99, pp. 91-100, 1999 (appendix A.2: the sky, in ``preetham.py``).
 """
 
 from __future__ import annotations
