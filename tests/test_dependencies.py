@@ -150,7 +150,7 @@ def test_optional_imports_are_guarded():
 def test_capture_bench_child_needs_no_extra():
     """`f2l bench-capture`'s timing child (a script in a string) imported pandas, which no plain
     install has: its unconditional imports are declared dependencies or f2l itself."""
-    from f2l.capture import bench
+    from f2l.dev import bench_capture as bench
 
     declared = _names(PYPROJECT["project"]["dependencies"])
     owners = _owners()

@@ -15,8 +15,12 @@ OUT = Path(__file__).resolve().parents[2] / "docs" / "example.png"
 def make_figure(out: Path = OUT) -> Path:
     import tempfile
 
-    import skimage.data
     from PIL import Image, ImageDraw
+
+    try:
+        import skimage.data
+    except ImportError as exc:  # scikit-image ships the photo; it is a test extra, not a dependency
+        raise RuntimeError("make readme-figure needs scikit-image (pip install 'f2l[test]')") from exc
 
     import f2l
     from f2l.io.preview import contact_sheet, save_png, tonemap
