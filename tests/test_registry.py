@@ -86,3 +86,24 @@ def test_a_passed_capability_check_is_remembered_across_processes(tmp_path, monk
     with pytest.raises(registry.ModelNotFoundError, match="refused on purpose"):
         registry.load_model("sunsky", grid)
     assert not (tmp_path / "b" / registry.STAMP_DIR).exists() or not any((tmp_path / "b" / registry.STAMP_DIR).iterdir())
+
+
+def test_discovery_happens_once_and_get_builds_nothing(monkeypatch):
+    """The registry loads and checks each plugin once per set of installed entry points;
+    ``get(name)`` answers with the class, version and capabilities without making a model."""
+    from f2l.models import registry
+
+    first = registry.discover()
+    calls = []
+    monkeypatch.setattr(registry, "check_class", lambda cls: calls.append(cls))
+    again = registry.discover()
+    assert calls == [] and all(again[k] is first[k] for k in first)  # nothing loaded or checked again
+
+    built = []
+    monkeypatch.setattr(registry.LightingModel, "__init__", lambda self, *a, **k: built.append(self))
+    spec = registry.get("sunsky")
+    assert built == []
+    assert spec.cls is first["sunsky"].cls and spec.version == str(first["sunsky"].cls.version)
+    assert spec.capabilities == ("compact-sun", "sun-angles") and spec.package == "f2l"
+    with pytest.raises(registry.ModelNotFoundError, match="unknown lighting model 'nope'"):
+        registry.get("nope")

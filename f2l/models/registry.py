@@ -52,31 +52,81 @@ class ModelInfo:
         return self.cls is not None
 
 
-def discover() -> dict[str, ModelInfo]:
-    """Load every entry point of the group; failures are kept as ModelInfo.error."""
+def _entry_points() -> tuple:
+    """The group's entry points now installed: (name, value, distribution) per entry (cheap: the
+    installed metadata, nothing imported)."""
+    return tuple((ep.name, ep.value, ep.dist.name if ep.dist is not None else "?", ep)
+                 for ep in entry_points(group=GROUP))
+
+
+@lru_cache(maxsize=8)
+def _discover(installed: tuple) -> dict[str, ModelInfo]:
     found: dict[str, ModelInfo] = {}
-    for ep in entry_points(group=GROUP):
-        if ep.name in found:  # the same distribution seen twice on sys.path (e.g. editable + build)
+    for name, value, package, ep in installed:
+        if name in found:  # the same distribution seen twice on sys.path (e.g. editable + build)
             continue
-        package = ep.dist.name if ep.dist is not None else "?"
-        info = ModelInfo(name=ep.name, target=ep.value, package=package)
+        info = ModelInfo(name=name, target=value, package=package)
         try:
             obj = ep.load()
             if not (isinstance(obj, type) and issubclass(obj, LightingModel)):
-                raise TypeError(f"{ep.value} is not a subclass of f2l.models.base.LightingModel")
+                raise TypeError(f"{value} is not a subclass of f2l.models.base.LightingModel")
             missing = sorted(getattr(obj, "__abstractmethods__", ()))
             hint = ""
             if "radiance" in missing and declared(obj):
                 hint = " (list the capability mixins before LightingModel in the class's bases)"
             if missing:
-                raise TypeError(f"{ep.value} does not implement {', '.join(missing)}{hint}")
+                raise TypeError(f"{value} does not implement {', '.join(missing)}{hint}")
             check_class(obj)
             info.capabilities = tuple(declared(obj))
             info.cls = obj
         except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the others
             info.error = f"{type(exc).__name__}: {exc}"
-        found[ep.name] = info
+        found[name] = info
     return dict(sorted(found.items()))
+
+
+def discover() -> dict[str, ModelInfo]:
+    """Every model of the group, loaded once per set of installed entry points (a plugin installed
+    meanwhile is found on the next call); failures are kept as ``ModelInfo.error``."""
+    return dict(_discover(tuple((n, v, p, _EntryPoint(ep)) for n, v, p, ep in _entry_points())))
+
+
+class _EntryPoint:
+    """An entry point compared by (name, value, distribution), so the cache key is stable."""
+
+    def __init__(self, ep) -> None:
+        self.ep = ep
+        self.key = (ep.name, ep.value, ep.dist.name if ep.dist is not None else "?")
+
+    def load(self):
+        return self.ep.load()
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _EntryPoint) and self.key == other.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What the registry knows of a model without building it: its name, class, version,
+    capabilities, the distribution that provides it and its entry-point target."""
+
+    name: str
+    cls: type
+    version: str
+    capabilities: tuple[str, ...]
+    package: str
+    target: str
+
+
+def get(name: str) -> ModelSpec:
+    """The :class:`ModelSpec` of the model registered as ``name`` (nothing is built);
+    :class:`ModelNotFoundError` for an unknown model or one that failed to load."""
+    info = _loaded(name)
+    return ModelSpec(name=info.name, cls=info.cls, version=str(info.cls.version), capabilities=info.capabilities,
+                     package=info.package, target=info.target)
 
 
 def _loaded(name: str) -> ModelInfo:
