@@ -88,11 +88,11 @@ def estimate_photo(path: str | os.PathLike, model: str = "sunsky", *,
                    min_face_px: float | None = None) -> list[FaceEstimate]:
     """Every face of one photo (JPEG, PNG, TIFF or camera RAW), each with the light ``model``
     estimates from it, in the detector's order (module doc). A photo that cannot be read raises
-    :class:`f2l.face.photo_core.PhotoError` (a ValueError naming it); an unknown model raises
+    :class:`f2l.io.photo.core.PhotoError` (a ValueError naming it); an unknown model raises
     :class:`f2l.models.registry.ModelNotFoundError`. A photo without a face gives an empty list."""
     from f2l.face.fit import FaceFit, face_record, fit_photo_faces, landmark_box
     from f2l.face.landmarker import FaceLandmarker
-    from f2l.face.photo import load_photo
+    from f2l.io.photo import load_photo
     from f2l.models.registry import model_class
     from f2l.pipeline.faces import fit_options
     from f2l.pipeline.spec import load_pipeline

@@ -180,7 +180,7 @@ def _make_photo(ext: str) -> Callable[[Path], Path]:
 
 
 def _read_photo(path: Path):
-    from f2l.face.photo import load_photo
+    from f2l.io.photo import load_photo
 
     photo = load_photo(path)
     _finite(photo.codes, "load_photo")
@@ -194,7 +194,7 @@ def _make_dng(folder: Path) -> Path:
 
 
 def _read_raw(path: Path):
-    from f2l.capture.raw_meta import read_raw_metadata
+    from f2l.io.raw_meta import read_raw_metadata
 
     meta = read_raw_metadata(path)
     for name in ("exposure_s", "f_number", "iso", "focal_length_mm", "white_level"):
@@ -413,8 +413,8 @@ TARGET_NAMES = ("exr", "exr-any", "radiance", "pfm", "png", "jpeg", "dng", "sess
 
 
 def targets() -> dict[str, Target]:
-    from f2l.capture.raw_meta import RawError
-    from f2l.face.photo_core import PhotoError
+    from f2l.io.raw_meta import RawError
+    from f2l.io.photo.core import PhotoError
     from f2l.io.bounded import InputError
     from f2l.io.exr import ExrError
     from f2l.pipeline.spec import PipelineError

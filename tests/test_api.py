@@ -75,7 +75,7 @@ def test_a_refused_face_has_its_reason_and_no_probe(photos, tmp_path):
 
 
 def test_a_photo_without_a_face_gives_none_and_bad_input_raises(photos, tmp_path):
-    from f2l.face.photo_core import PhotoError
+    from f2l.io.photo.core import PhotoError
     from f2l.models.registry import ModelNotFoundError
 
     assert f2l.estimate_photo(photos / "coffee.png") == []

@@ -11,7 +11,7 @@ import rawpy
 from scipy import ndimage
 
 from f2l.capture.dng import synthetic_sky_scene, write_bracket, write_dng
-from f2l.capture.raw_meta import (
+from f2l.io.raw_meta import (
     BAYER_PATTERNS, RawError, bayer_mosaic, demosaic_bilinear, read_raw, read_raw_metadata, read_raw_mosaic,
 )  # fmt: skip
 
@@ -75,7 +75,7 @@ def test_lossless_jpeg_dng_decodes_bit_exactly_and_is_smaller(tmp_path, cfa):
 
 
 def test_dng_levels_come_from_tags_without_a_decode(tmp_path, monkeypatch):
-    import f2l.capture.raw_meta as raw_meta
+    import f2l.io.raw_meta as raw_meta
 
     path = write_dng(tmp_path / "a.dng", _random_mosaic(2), exposure_s=0.01, f_number=8, iso=100,
                      black_level=[10, 20, 30, 40], cfa="GBRG", compression="ljpeg")

@@ -1,4 +1,4 @@
-"""f2l.face.photo: decoding, masks, orientation, focal length, EXIF and errors (fixtures made here)."""
+"""f2l.io.photo: decoding, masks, orientation, focal length, EXIF and errors (fixtures made here)."""
 
 import math
 import pickle
@@ -10,8 +10,8 @@ import pytest
 from PIL import Image, ImageOps
 from PIL.TiffImagePlugin import IFDRational
 
-from f2l.face import photo
-from f2l.face.photo import DEFAULT_FOCAL_35MM_MM, DIAGONAL_35MM_MM, PhotoError, load_photo
+from f2l.io import photo
+from f2l.io.photo import DEFAULT_FOCAL_35MM_MM, DIAGONAL_35MM_MM, PhotoError, load_photo
 
 CR2 = Path(__file__).resolve().parents[2] / "shared/data/raw/IMG_5952.CR2"
 EXIF_IFD = 0x8769

@@ -59,7 +59,7 @@ def astronaut_faces(tmp_path_factory):
 
 def test_a_blurred_face_scores_above_the_threshold_and_a_sharp_one_below(astronaut_faces):
     from f2l.face.fit import face_width_px
-    from f2l.face.photo import load_photo
+    from f2l.io.photo import load_photo
     from f2l.face.quality import face_blur_index
 
     paths, points = astronaut_faces

@@ -171,7 +171,7 @@ PHOTO_SIZE, FOCAL, DISTANCE, GREY = 256, 700.0, 60.0, 128
 
 @pytest.fixture(scope="module")
 def grey_photo():
-    from f2l.face.photo import Photo
+    from f2l.io.photo import Photo
 
     return Photo(path="grey.png", kind="png", codes=np.full((PHOTO_SIZE, PHOTO_SIZE, 3), GREY, np.uint8),
                  focal_px=FOCAL, focal_source="default", orientation=1, exif={})
@@ -225,7 +225,7 @@ def _band(fit):
 def test_fit_face_hairline_band_by_colour(grey_photo):
     """A dark fringe painted over the forehead's hairline band: "colour" leaves it out as hair
     and keeps the skin; "exclude" leaves the band out as border, "keep" keeps all of it."""
-    from f2l.face.photo import Photo
+    from f2l.io.photo import Photo
     from f2l.face.regions import skin_regions
 
     lm = synthetic_landmarks(10.0, -5.0, 3.0)

@@ -17,9 +17,9 @@ import pyarrow.parquet as pq
 import pytest
 from PIL import Image
 
-import f2l.face.photo as photo_mod
+import f2l.io.photo as photo_mod
 from f2l.lighting.grid import LatLongGrid
-from f2l.face.photo import Photo, PhotoError, StreamedPhoto, load_photo
+from f2l.io.photo import Photo, PhotoError, StreamedPhoto, load_photo
 
 needs_streaming = pytest.mark.skipif(not photo_mod._CAN_STREAM_PILLOW, reason="JPEG/PNG streaming needs Linux madvise")
 

@@ -37,7 +37,7 @@ from pidng.core import RAW2DNG, DNGTags, Tag
 from pidng.defs import CalibrationIlluminant, PhotometricInterpretation
 from pidng.dng import Type, dngIFD, dngTag
 
-from f2l.capture.raw_meta import BAYER_PATTERNS, XYZ_TO_REC709, bayer_mosaic
+from f2l.io.raw_meta import BAYER_PATTERNS, XYZ_TO_REC709, bayer_mosaic
 from f2l.io.atomic import atomic_path
 
 __all__ = ["write_dng", "write_bracket", "synthetic_sky_scene"]

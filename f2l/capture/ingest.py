@@ -4,7 +4,7 @@ What a row says about a file, and how it is decided:
 
 * **kind** from the extension: camera RAW (anything LibRaw opens: CR2, CR3, NEF, ARW, DNG, ...),
   ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``, PFM).
-* **metadata**: RAW through :func:`f2l.capture.raw_meta.read_raw_metadata` (exifread; levels and
+* **metadata**: RAW through :func:`f2l.io.raw_meta.read_raw_metadata` (exifread; levels and
   CFA from the tags of a DNG that states them completely, else one LibRaw decode, because LibRaw
   reports black/white levels and the CFA only after unpacking: a Canon's black level is measured
   on masked pixels); images through exifread and Pillow's
@@ -174,7 +174,7 @@ def _ev100(exposure_s, f_number, iso):
 
 
 def _raw_meta(path: Path) -> dict:
-    from f2l.capture.raw_meta import read_raw_metadata
+    from f2l.io.raw_meta import read_raw_metadata
 
     m = read_raw_metadata(path)
     out = _empty_meta()
@@ -315,7 +315,7 @@ class ContentRoles:
 
     def chart(self, preview: np.ndarray) -> bool:
         from f2l.colour.detect import detect_chart
-        from f2l.face.photo import srgb_to_linear
+        from f2l.io.photo import srgb_to_linear
 
         linear = srgb_to_linear(preview / 255.0).astype(np.float32)
         return detect_chart(preview, linear) is not None

@@ -27,7 +27,7 @@ exposed: a quad is inconsistent beyond 4 sigma (noise of both) + ``motion_tolera
 half a quad of misregistration (0.5 x local gradient); a frame with more than ``moved_fraction``
 inconsistent quads is "moved" (reported, warned, still merged).
 
-Demosaic: bilinear (:func:`~f2l.capture.raw_meta.demosaic_bilinear`), a convex combination;
+Demosaic: bilinear (:func:`~f2l.io.raw_meta.demosaic_bilinear`), a convex combination;
 gradient-corrected kernels (Malvar) overshoot across 1e7-contrast edges (a sun) into negative radiance.
 """
 
@@ -44,7 +44,7 @@ from functools import partial
 import numpy as np
 from scipy import fft as sfft
 
-from f2l.capture.raw_meta import (  # noqa: F401 (RawFrame, raw_frame: re-exported merge inputs)
+from f2l.io.raw_meta import (  # noqa: F401 (RawFrame, raw_frame: re-exported merge inputs)
     BAYER_PATTERNS, RawFrame, RawMeta, camera_to_rec709, demosaic_bilinear, exif_fields, quad_mean, raw_frame, read_raw,
     read_raw_metadata,
 )  # fmt: skip
@@ -425,7 +425,7 @@ def merge_bracket(
     ``dark_dn`` defaults to 4 read-noise sigmas. ``prefetch``: files decoded ahead in threads
     (``True`` = 1, ``False`` = 0: decode in turn). Raises :class:`BracketError` for fewer than two
     frames, frames from different cameras/sizes/CFA patterns or without exposure metadata, and
-    :class:`~f2l.capture.raw_meta.RawError` for unreadable files; every message names the files.
+    :class:`~f2l.io.raw_meta.RawError` for unreadable files; every message names the files.
     """
     if isinstance(frames, BracketStart):
         return _merge_started(frames, noise, frames.saturation_fraction, dark_dn, align, min_shift_px, max_shift_px,

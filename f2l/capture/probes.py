@@ -234,7 +234,7 @@ def _merge_frames(root: Path, bid: str, frames: list[dict], started=None):
 
 
 def _to_colour_space(rgb: np.ndarray, merged, opts: ViewOptions, warnings: list[str]) -> tuple[np.ndarray, str]:
-    from f2l.capture.raw_meta import camera_to_rec709
+    from f2l.io.raw_meta import camera_to_rec709
 
     if opts.colour_space == "camera":
         return rgb, "camera"

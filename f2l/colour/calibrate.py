@@ -127,7 +127,7 @@ def calibrate(chart_photos, out_dir, *, edition: str = DEFAULT_EDITION, method: 
     ``method``: ``3x3`` or ``root-polynomial``; ``edition``: a 24-patch name of
     ``colour.CCS_COLOURCHECKERS``. Bad values raise ValueError before anything is written.
     """
-    from f2l.face.photo import PhotoError, load_photo
+    from f2l.io.photo import PhotoError, load_photo
     from f2l.face.run import expand_photos
     from f2l.io.tables import ParquetAppender
 

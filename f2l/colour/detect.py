@@ -25,7 +25,7 @@ a robust relative spread that catches shadow edges and glare. A patch is exclude
 ``outside`` (region leaves the image), ``too_small`` (< ``MIN_PIXELS`` pixels), ``clipped`` (more
 than 1 % of its pixels have a channel ≥ ``CLIP_FRACTION`` × clip level, or are flagged in
 ``clipped``), ``nonuniform`` (spread > ``SPREAD_LIMIT``). The clip level defaults to
-max(1, max of ``linear``): 1.0 is full scale for :func:`f2l.face.photo.load_photo` images.
+max(1, max of ``linear``): 1.0 is full scale for :func:`f2l.io.photo.load_photo` images.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ def _rss_mb() -> float:
 
 def _time_photo(path: Path, landmarker, options):
     from f2l.face.fit import FaceFit, fit_photo_faces
-    from f2l.face.photo import load_photo
+    from f2l.io.photo import load_photo
 
     t0 = time.perf_counter()
     photo = load_photo(path)

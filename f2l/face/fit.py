@@ -217,7 +217,7 @@ def sky_visibility(bits: np.ndarray, grid: LatLongGrid) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 def fit_face(photo, landmarks, face_index: int, options: FitOptions,
              detection_score: float = 1.0, presence: float = 1.0) -> FaceFit | Rejected:
-    """Fit one face of ``photo`` (:class:`f2l.face.photo.Photo`) from its (478, 3) landmarks."""
+    """Fit one face of ``photo`` (:class:`f2l.io.photo.Photo`) from its (478, 3) landmarks."""
     from f2l.face.quality import face_blur_index
     from f2l.face.regions import skin_regions
     from f2l.face.mesh import canonical_face_mesh
@@ -355,7 +355,7 @@ def detection_max_side(shape: tuple[int, int], min_face_px: float) -> int:
     box reduction to it would shrink a ``min_face_px`` face below the detector's band (a 50 MP
     photo at the default 40 px is reduced by 2, not 3)."""
     from f2l.face.detector import FULL_RANGE
-    from f2l.face.photo import DETECTION_MAX_SIDE
+    from f2l.io.photo import DETECTION_MAX_SIDE
 
     long_side = max(int(shape[0]), int(shape[1]))
     factor = max(1, int(float(min_face_px) // FULL_RANGE.band_px[0]))

@@ -67,7 +67,7 @@ def central_box(landmarks_xy: np.ndarray, hw: tuple[int, int], keep: float = 0.7
 
 def face_blur_index(photo, landmarks_xy: np.ndarray, face_width_px: float) -> float | None:
     """The blur index of one face of ``photo`` (anything with ``shape`` and ``rows(index, cols)``
-    returning ``display`` uint8 RGB: :class:`f2l.face.photo.Photo` or a streamed photo), or None
+    returning ``display`` uint8 RGB: :class:`f2l.io.photo.Photo` or a streamed photo), or None
     when its central box is smaller than 8x8 px."""
     y0, y1, x0, x1 = central_box(landmarks_xy, photo.shape)
     if y1 - y0 < 8 or x1 - x0 < 8:

@@ -142,7 +142,7 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
               records_per_shard: int = 64) -> dict:
     """Fit every face of every photo into the shard directory ``out``; returns a summary."""
     from f2l.face.landmarker import FaceLandmarker
-    from f2l.face.photo import PhotoError, load_photo
+    from f2l.io.photo import PhotoError, load_photo
     from f2l.io.shards import ShardWriter, write_side_photo
     from f2l.io.tables import ParquetAppender
 

@@ -1,6 +1,6 @@
 """Absolute light from a photo's exposure: the scale from its linear values to cd/m².
 
-A photo's linear values (1.0 = full scale of its encoding, :mod:`f2l.face.photo`) are relative: the
+A photo's linear values (1.0 = full scale of its encoding, :mod:`f2l.io.photo`) are relative: the
 camera's exposure (time t in s, f-number N, ISO speed S) decides which scene luminance lands where.
 The reflected-light meter equation (ISO 2720) ties them together:
 

@@ -50,7 +50,7 @@ def calibrate_chart(cache: Cache, root: Path, row: dict, params: dict, counts: d
     def produce(tmp: Path) -> dict:
         from f2l.colour.calibrate import calibrate_photo
         from f2l.colour.fit import ColourCorrection
-        from f2l.face.photo import load_photo
+        from f2l.io.photo import load_photo
 
         t0 = time.perf_counter()
         out = {"status": "error", "reason": "", "correction": ColourCorrection.identity().to_dict(),
@@ -127,7 +127,7 @@ class FaceFitter:
 
     def _produce(self, tmp: Path, row: dict, timings: dict) -> dict:
         from f2l.face.fit import FaceFit, face_record, fit_photo_faces
-        from f2l.face.photo import load_photo
+        from f2l.io.photo import load_photo
         from f2l.face.run import _overlay, _photo_overlay, face_id
         from f2l.io.shards import ShardWriter, write_side_photo
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from f2l.capture.cameras import ViewCamera
 from f2l.capture.dng import write_bracket
-from f2l.capture.raw_meta import rec709_to_camera_matrix
+from f2l.io.raw_meta import rec709_to_camera_matrix
 from f2l.capture.sphere import render_view
 
 __all__ = ["CANON_EOS_30D_XYZ_TO_CAMERA", "SessionTruth", "write_fisheye_session", "write_panorama_session",

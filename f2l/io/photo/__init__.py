@@ -49,8 +49,8 @@ EXIF comes from Pillow for JPEG/PNG and from ``exifread`` for RAW and TIFF. Pill
 may write "Unexpected end of file" to stderr for a truncated RAW).
 
 Modules: this one decodes whole photos and is the entry point (:func:`load_photo`);
-:mod:`f2l.face.photo_core` holds :class:`Photo` and the code arithmetic, :mod:`f2l.face.photo_exif`
-the EXIF and focal length, :mod:`f2l.face.photo_stream` the streamed decoding of large photos.
+:mod:`f2l.io.photo.core` holds :class:`Photo` and the code arithmetic, :mod:`f2l.io.photo.exif`
+the EXIF and focal length, :mod:`f2l.io.photo.stream` the streamed decoding of large photos.
 """
 
 from __future__ import annotations
@@ -64,15 +64,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from f2l.face.photo_core import (  # noqa: F401 - re-exported: the public API of photo decoding
+from f2l.io.photo.core import (  # noqa: F401 - re-exported: the public API of photo decoding
     BLACK_CODE_8BIT, BLACK_LINEAR, LUMA, Photo, PhotoError, _channel_max, _no_pillow_bomb_guard, _orient,
     _preview_scale, _srgb8, srgb_to_linear,
 )
-from f2l.face.photo_exif import (  # noqa: F401
+from f2l.io.photo.exif import (  # noqa: F401
     DEFAULT_FOCAL_35MM_MM, DIAGONAL_35MM_MM, _exif_size_scale, _exif_summary, _exifread_tags, _focal,
     _orientation, _pillow_tags,
 )
-from f2l.face.photo_stream import _CAN_STREAM_PILLOW, StreamedPhoto, _PillowSource, _TiffSource  # noqa: F401
+from f2l.io.photo.stream import _CAN_STREAM_PILLOW, StreamedPhoto, _PillowSource, _TiffSource  # noqa: F401
 
 MIN_SIZE = 16
 # Photos above this many pixels are refused before decoding (override: $F2L_MAX_PHOTO_PIXELS). At

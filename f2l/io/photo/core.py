@@ -1,6 +1,6 @@
 """The decoded photo (:class:`Photo`), its errors, and the sample-code arithmetic it rests on.
 
-Conventions of :class:`Photo` are stated in :mod:`f2l.face.photo`, which decodes files into it:
+Conventions of :class:`Photo` are stated in :mod:`f2l.io.photo`, which decodes files into it:
 sRGB codes <-> linear values (IEC 61966-2-1, exact inverse), the derived ``clipped`` / ``black``
 masks, EXIF orientation, the box reduction used for face detection, and the switch that replaces
 Pillow's decompression-bomb guard by f2l's own pixel limit.

@@ -1,5 +1,5 @@
 """EXIF of a photo: the fields f2l keeps (``Photo.exif``), its orientation, and the pinhole focal
-length in pixels (conventions in :mod:`f2l.face.photo`). Pillow reads JPEG/PNG EXIF, ``exifread``
+length in pixels (conventions in :mod:`f2l.io.photo`). Pillow reads JPEG/PNG EXIF, ``exifread``
 RAW and TIFF; broken EXIF never makes a photo unusable.
 """
 

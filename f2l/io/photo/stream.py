@@ -1,11 +1,11 @@
 """Streamed decoding of large JPEG, PNG and TIFF photos (:class:`StreamedPhoto`).
 
-A photo whose long side exceeds ``f2l.face.photo.DETECTION_MAX_SIDE`` is never held whole: faces
+A photo whose long side exceeds ``f2l.io.photo.DETECTION_MAX_SIDE`` is never held whole: faces
 are detected on a reduced decode (JPEG: libjpeg's DCT scaling through ``Image.draft``; PNG:
 Pillow's own decoder run row block by row block into an anonymous mapping whose finished rows are
 box-reduced and released; TIFF: strips or tiles one band at a time, or direct row reads when
 uncompressed), and face fitting reads only the full-resolution window around each face. Details,
-limits and measurements: :mod:`f2l.face.photo` and ``docs/large_photos.md``.
+limits and measurements: :mod:`f2l.io.photo` and ``docs/large_photos.md``.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from functools import cached_property
 
 import numpy as np
 
-from f2l.face.photo_core import Photo, PhotoError, _BoxReducer, _box_factor, _code_planes, _no_pillow_bomb_guard, _orient
-from f2l.face.photo_exif import _pillow_tags
+from f2l.io.photo.core import Photo, PhotoError, _BoxReducer, _box_factor, _code_planes, _no_pillow_bomb_guard, _orient
+from f2l.io.photo.exif import _pillow_tags
 
 
 # JPEG/PNG input is handed to Pillow's decoder in pieces of this size; between pieces the rows it
