@@ -226,7 +226,7 @@ def _make_session(folder: Path) -> Path:
 
 
 def _read_session(path: Path):
-    from f2l.capture.ingest import load_session_toml
+    from f2l.capture.session_toml import load_session_toml
 
     config, problem = load_session_toml(path.parent)
     if not isinstance(problem, str):

@@ -137,7 +137,7 @@ def test_unplaced_bracket_without_lens_model(tmp_path, scene):
 
 
 def test_downsample_view_preserves_radiance_and_flags_blocks():
-    from f2l.capture.probes import downsample_view
+    from f2l.capture.views import downsample_view
 
     rng = np.random.default_rng(0)
     rgb = rng.random((101, 130, 3)).astype(np.float32) * 1e4

@@ -97,7 +97,7 @@ def test_probe_is_the_scene_in_linear_rec709(sessions, session):
 
 def test_camera_rgb_is_not_rec709(sessions, tmp_path):
     """Without the colour matrix the probe is off per channel (what make-probes used to write)."""
-    from f2l.capture.probes import merge_bracket_view
+    from f2l.capture.views import merge_bracket_view
 
     root, work, truths, _, _, _ = sessions
     frames = [r for r in pq.read_table(work / "captures.parquet").to_pylist() if r["session"] == "fisheye"]
@@ -186,7 +186,7 @@ def test_flat_field_and_cos4(tmp_path):
 
 
 def test_brackets_split_where_the_exposure_sequence_restarts():
-    from f2l.capture.ingest import split_brackets
+    from f2l.capture.brackets import split_brackets
 
     def frame(i, t, ev):
         return {"path": f"IMG_{i:04d}.CR2", "timestamp_utc": f"2024-06-21T12:00:{t:02d}", "mtime_ns": 0,

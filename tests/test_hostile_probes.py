@@ -132,7 +132,8 @@ def test_make_probes_refuses_the_bad_sessions_and_keeps_the_good_one(made):
 def test_a_nan_sun_is_a_row_error_not_a_lost_table(tree, monkeypatch):
     """A NaN that reaches a row's numbers (here the sun found in a view) makes that row an error
     naming the column; the other sessions' rows and probes.parquet are written."""
-    import f2l.capture.probes as cp
+    import f2l.capture.views as cp  # _set_sun finds the sun with views.view_sun
+    from f2l.capture.probes import make_probes
     from f2l.capture.manifest import run_ingest
 
     work = tree / "nan_sun_work"
@@ -146,7 +147,7 @@ def test_a_nan_sun_is_a_row_error_not_a_lost_table(tree, monkeypatch):
         return real(view)
 
     monkeypatch.setattr(cp, "view_sun", sun)
-    summary = cp.make_probes(tree / "raw", work, grid_height=GRID_HEIGHT)
+    summary = make_probes(tree / "raw", work, grid_height=GRID_HEIGHT)
     rows = _rows(work)
     (view,) = [r for r in rows if r["kind"] == "view" and r["session"] == "down"]
     assert view["status"] == "error" and "sun_elevation_deg" in view["message"]
@@ -156,7 +157,7 @@ def test_a_nan_sun_is_a_row_error_not_a_lost_table(tree, monkeypatch):
 
 
 def test_checked_rows_turn_an_invalid_row_into_an_error():
-    from f2l.capture.probes import _row, checked_rows
+    from f2l.capture.probe_rows import _row, checked_rows
 
     rows = checked_rows([_row("probe", "a", "a", "ok", "", coverage_fraction=float("inf")),
                          _row("probe", "b", "b", "ok", "", coverage_fraction=7.0),

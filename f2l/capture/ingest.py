@@ -65,18 +65,16 @@ recomputed from the rows every time (cheap). The table is written atomically.
 
 from __future__ import annotations
 
-import fnmatch
-import json
 import logging
 import math
 import os
-import stat as stat_mod
-from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+
+from f2l.capture.session_toml import outside_target
 
 INGEST_VERSION = 2  # 2: session_problem column, brackets split by view, exposure restart and time jump
 RAW_EXTENSIONS = {".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".iiq", ".k25",
@@ -93,7 +91,6 @@ ROLE_FOLDERS = {  # folder name (lower case) -> role
                     "chart"),
     **dict.fromkeys(["probe", "probes", "merged", "lightprobes"], "probe"),
 }
-SESSION_TOML = "session.toml"
 
 
 @dataclass
@@ -149,13 +146,6 @@ def scan(root: Path, linked_out: list | None = None) -> list[Path]:
             if not name.startswith(".") and kind_of(p) is not None:
                 out.append(p)
     return out
-
-
-def outside_target(base: str, path: Path) -> str | None:
-    """The resolved target of ``path`` when it lies outside the folder whose real path is
-    ``base`` (a symbolic link out of the capture tree), else None."""
-    real = os.path.realpath(path)
-    return None if os.path.commonpath([base, real]) == base else real
 
 
 # -- metadata per kind ---------------------------------------------------------------------------
@@ -343,288 +333,3 @@ def _folder_role(rel: Path) -> str | None:
     return None
 
 
-def load_session_toml(folder: Path) -> tuple[dict, str]:
-    """(config, problem): the folder's session.toml, read with bounds (:func:`f2l.io.bounded.load_toml`:
-    size, nesting depth, string length, finite numbers) and validated against schema ``session``;
-    ({}, "") when there is none, ({}, reason naming the file and key) when it is invalid."""
-    import jsonschema
-
-    from f2l.io.bounded import MAX_TEXT_BYTES, InputError, load_toml
-    from f2l.io.schema import load_schema
-
-    path = folder / SESSION_TOML
-    if not path.is_file():
-        return {}, ""
-    shown = shown_path(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read(MAX_TEXT_BYTES + 1)  # load_toml refuses more than MAX_TEXT_BYTES
-        config = load_toml(data, shown)
-        jsonschema.validate(config, load_schema("session"))
-    except InputError as exc:
-        return {}, str(exc)
-    except OSError as exc:
-        return {}, f"{shown}: cannot be read ({exc.strerror or exc})"
-    except jsonschema.ValidationError as exc:
-        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        return {}, f"{shown}: {where}: {exc.message}{_toml_hint(exc)}"
-    return config, ""
-
-
-def shown_path(path: str | os.PathLike) -> str:
-    """A path as valid UTF-8 text: bytes of a file name that are not UTF-8 (Python holds them as
-    surrogate escapes) shown as ``\\xff``."""
-    text = os.fspath(path)
-    try:
-        text.encode("utf-8")
-        return text
-    except UnicodeEncodeError:
-        return os.fsencode(text).decode("utf-8", "backslashreplace")
-
-
-def is_utf8(text: str) -> bool:
-    try:
-        text.encode("utf-8")
-        return True
-    except UnicodeEncodeError:
-        return False
-
-
-def matched_shot(config: dict, rel_in_session: str) -> int | None:
-    """Index of the first ``[[shots]]`` entry whose ``files`` glob matches, None when none does."""
-    for i, shot in enumerate(config.get("shots", [])):
-        if fnmatch.fnmatch(rel_in_session, shot["files"]):
-            return i
-    return None
-
-
-def key_where(config: dict, shot: int | None, key: str) -> str:
-    """Where a view's lens key comes from in the session TOML: ``shots/<i>/<key>`` when the
-    matched shot sets it, else ``lens/<key>`` (the key as given when neither does)."""
-    if shot is not None and key in config.get("shots", [])[shot]:
-        return f"shots/{shot}/{key}"
-    if key in config.get("lens", {}):
-        return f"lens/{key}"
-    return key or "lens"
-
-
-def unmatched_globs(config: dict, rels_in_session: list[str]) -> list[str]:
-    """"shots/<i>/files = '<glob>': ..." for each ``[[shots]]`` glob that matches none of the
-    session's files, or whose files all an earlier shot already took (first match wins)."""
-    shots = config.get("shots", [])
-    taken = Counter(matched_shot(config, rel) for rel in rels_in_session)
-    out = []
-    for i, shot in enumerate(shots):
-        if taken[i]:
-            continue
-        glob = shot["files"]
-        if any(fnmatch.fnmatch(rel, glob) for rel in rels_in_session):
-            out.append(f"shots/{i}/files = {glob!r}: every file it matches is taken by an earlier shot "
-                       f"(the first match wins); the shot applies to no file")
-        else:
-            out.append(f"shots/{i}/files = {glob!r} matches no file of the session (globs match paths relative "
-                       f"to the session folder, e.g. 'sky/*'); the shot applies to no file")
-    return out
-
-
-def session_files(config: dict) -> list[tuple[str, str]]:
-    """(key path, file name) of every file a session TOML names: ``lens/falloff/file`` and
-    ``shots/<i>/falloff/file``."""
-    out = []
-    for where, table in [("lens", config.get("lens", {}))] + [
-            (f"shots/{i}", shot) for i, shot in enumerate(config.get("shots", []))]:
-        falloff = table.get("falloff")
-        if isinstance(falloff, dict) and falloff.get("file"):
-            out.append((f"{where}/falloff/file", str(falloff["file"])))
-    return out
-
-
-class OutsideError(ValueError):
-    """A path named in a session TOML that leaves the session folder."""
-
-
-def resolve_session_file(folder: Path, name: str, *, allow_outside: bool = False) -> tuple[Path, bool]:
-    """(path, outside) of a file named in ``folder``'s session TOML, relative to ``folder``:
-    OutsideError for an absolute path, a ``..`` that leaves the folder or a symlink (the file or a
-    folder above it inside the session) that resolves outside it, unless ``allow_outside``
-    (then ``outside`` says whether it does)."""
-    from pathlib import PurePosixPath, PureWindowsPath
-
-    absolute = (PurePosixPath(name).is_absolute() or PureWindowsPath(name).is_absolute()
-                or bool(PureWindowsPath(name).drive))
-    path = Path(name) if absolute else folder / name
-    base = os.path.realpath(folder)
-    real = os.path.realpath(path)
-    inside = not absolute and os.path.commonpath([base, real]) == base
-    if inside or allow_outside:
-        return path, not inside
-    if absolute:
-        raise OutsideError(f"{name!r} is an absolute path; files named in a session.toml must be inside the "
-                           f"session folder")
-    if os.path.normpath(name).split(os.sep)[0] == os.pardir:
-        raise OutsideError(f"{name!r} leaves the session folder {shown_path(folder)}")
-    raise OutsideError(f"{name!r} resolves to {shown_path(real)} through a symbolic link, outside the session "
-                       f"folder {shown_path(base)}")
-
-
-def regular_file(path: Path) -> str:
-    """"" when ``path`` is a readable regular file, else why not (missing, a folder, a FIFO, ...)."""
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        return "not found" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
-    if not stat_mod.S_ISREG(st.st_mode):
-        return "not a regular file"
-    return ""
-
-
-_TOP_LEVEL_KEYS = ("probe_azimuth_deg", "timezone", "lens", "shots")
-
-
-def _toml_hint(exc) -> str:
-    """Why a top-level key can land inside a table: TOML gives a key after ``[[shots]]`` or
-    ``[lens]`` to that table."""
-    path = list(exc.absolute_path)
-    stray = [k for k in _TOP_LEVEL_KEYS if f"'{k}'" in exc.message]
-    if path and path[0] in ("shots", "lens") and stray:
-        return (f" ({stray[0]} is a top-level key: in TOML a key written after a [{path[0]}] table belongs to "
-                f"that table; move it above the first table)")
-    return ""
-
-
-def view_for(config: dict, rel_in_session: str) -> dict:
-    """What the session TOML says about one file (lens defaults, first matching shot)."""
-    view = {}
-    lens = config.get("lens", {})
-    view.update({k: v for k, v in lens.items()})
-    if "probe_azimuth_deg" in config:
-        view["probe_azimuth_deg"] = config["probe_azimuth_deg"]
-    shot = matched_shot(config, rel_in_session)
-    if shot is not None:
-        view.update({k: v for k, v in config["shots"][shot].items() if k != "files"})
-    return view
-
-
-def _capture_time(row: dict) -> float:
-    if row.get("timestamp_utc"):
-        try:
-            return datetime.fromisoformat(row["timestamp_utc"]).timestamp()
-        except ValueError:
-            pass
-    return row["mtime_ns"] / 1e9
-
-
-def split_by_time(rows: list[dict], gap_s: float) -> list[list[dict]]:
-    """Consecutive groups (by capture time) whose neighbours are at most ``gap_s`` apart."""
-    rows = sorted(rows, key=lambda r: (_capture_time(r), r["path"]))
-    groups: list[list[dict]] = []
-    for r in rows:
-        if groups and _capture_time(r) - _capture_time(groups[-1][-1]) <= gap_s:
-            groups[-1].append(r)
-        else:
-            groups.append([r])
-    return groups
-
-
-def _frame_key(r: dict) -> tuple:
-    return (r["camera"], r["lens"], r["width"], r["height"], r["focal_length_mm"])
-
-
-def _exposure(r: dict) -> float | None:
-    if not (r["exposure_s"] and r["f_number"] and r["iso"]):
-        return None
-    return r["exposure_s"] * r["iso"] / r["f_number"] ** 2
-
-
-JUMP_MIN_S = 3.0
-JUMP_FACTOR = 4.0
-"""Within a run, a pause longer than max(JUMP_MIN_S, JUMP_FACTOR x the run's median pause) between
-frames (capture-time difference less the earlier frame's exposure time) starts a new bracket."""
-
-
-def _view_key(r: dict) -> str:
-    """What places a frame: its session TOML view (orientation, lens), less role and probe azimuth."""
-    view = json.loads(r["view_json"] or "{}")
-    for k in ("role", "probe_azimuth_deg"):
-        view.pop(k, None)
-    return json.dumps(view, sort_keys=True)
-
-
-def _stop(r: dict) -> float | None:
-    e = _exposure(r)
-    return None if not e else round(3.0 * math.log2(e)) / 3.0  # to the nearest 1/3 EV
-
-
-def split_brackets(run: list[dict]) -> list[list[dict]]:
-    """Split a time-ordered run of frames into brackets: a new one starts where the frame's view
-    (session TOML orientation or lens) changes, where its exposure (to 1/3 EV) already occurs in
-    the bracket (the sequence restarted), or where the capture time jumps (:data:`JUMP_FACTOR`)."""
-    pauses = [max(0.0, _capture_time(b) - _capture_time(a) - (a["exposure_s"] or 0.0)) for a, b in zip(run, run[1:])]
-    jump = max(JUMP_MIN_S, JUMP_FACTOR * float(np.median(pauses))) if pauses else 0.0
-    out: list[list[dict]] = []
-    for i, r in enumerate(run):
-        cur = out[-1] if out else None
-        if cur is not None and _view_key(r) == _view_key(cur[-1]) and pauses[i - 1] <= jump and (
-                _stop(r) is None or _stop(r) not in {_stop(x) for x in cur}):
-            cur.append(r)
-        else:
-            out.append([r])
-    return out
-
-
-def bracket_summary(rows: list[dict]) -> list[dict]:
-    """One dict per bracket of ``rows``: id, session, frames, EV100 range, camera and view (yaw,
-    pitch, roll from the session TOML), for ingest's report."""
-    by: dict[str, list[dict]] = {}
-    for r in rows:
-        if r.get("bracket_id"):
-            by.setdefault(r["bracket_id"], []).append(r)
-    out = []
-    for bid, frames in sorted(by.items()):
-        view = json.loads(frames[0]["view_json"] or "{}")
-        evs = [r["ev100"] for r in frames if r.get("ev100") is not None]
-        out.append({"bracket_id": bid, "session": frames[0]["session"], "frames": len(frames),
-                    "ev100_min": min(evs) if evs else None, "ev100_max": max(evs) if evs else None,
-                    "camera": frames[0]["camera"],
-                    "view": {k: view[k] for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in view}})
-    return out
-
-
-def assign_brackets(rows: list[dict], gap_s: float) -> int:
-    """Set ``bracket_id`` / role / status on one session's frames (module doc); returns the
-    number of brackets."""
-    count = 0
-    frames = [r for r in rows if r["status"] == "ok" and r["kind"] in ("raw", "image")]
-    declared = [r for r in frames if r["role"] == "sky_bracket"]
-    free = [r for r in frames if r["role_source"] == "none"]
-    for run in (b for run in split_by_time(declared, gap_s) for b in split_brackets(run)):
-        keys = {_frame_key(r) for r in run}
-        if len(keys) > 1:
-            desc = "; ".join(f"{k[0] or 'unknown camera'} {k[2]}x{k[3]}" for k in sorted(keys, key=str))
-            for r in run:
-                r["status"], r["message"] = "error", (
-                    f"{r['path']}: bracket mixes cameras or frame sizes ({desc})")
-            continue
-        if len(run) == 1:
-            r = run[0]
-            r["status"], r["message"] = "skipped", (
-                f"{r['path']}: bracket of one frame (no other frame of its view within {gap_s:g} s and "
-                f"its exposure sequence): nothing to merge")
-            continue
-        count += 1
-        bid = f"{run[0]['session']}/{Path(run[0]['path']).stem}"
-        for r in run:
-            r["bracket_id"] = bid
-    # undeclared frames: a bracket if same camera/framing and stepped exposures
-    for run in split_by_time(free, gap_s):
-        by_key: dict = {}
-        for r in run:
-            by_key.setdefault(_frame_key(r), []).append(r)
-        for group in (b for g in by_key.values() for b in split_brackets(g)):
-            exposures = {round(math.log2(e), 1) for e in map(_exposure, group) if e}
-            if len(group) >= 2 and len(exposures) >= 2 and all(_exposure(r) for r in group):
-                count += 1
-                bid = f"{group[0]['session']}/{Path(group[0]['path']).stem}"
-                for r in group:
-                    r.update(bracket_id=bid, role="sky_bracket", role_source="detected")
-    return count

@@ -10,7 +10,9 @@ import os
 from collections import Counter
 from pathlib import Path
 
+from f2l.capture import brackets as br
 from f2l.capture import ingest as ing
+from f2l.capture import session_toml as st
 from f2l.io.hashing import file_sha256
 
 TABLE_NAME = "captures.parquet"
@@ -74,18 +76,18 @@ def _scan_item(root: Path, path: Path, previous: dict, allow_outside: bool = Fal
     link out of the tree is not opened unless ``allow_outside``; a previous row of it is reused
     only if that run read it (so a run with and one without ``allow_outside`` share no row)."""
     rel = path.relative_to(root).as_posix()
-    shown = ing.shown_path(rel)
+    shown = st.shown_path(rel)
     why = None
     try:
         stat = path.stat()
     except OSError as exc:  # a dangling symlink, a symlink loop, a file removed while scanning
-        stat, why = None, f"{ing.shown_path(path)}: cannot be read ({exc.strerror or exc})"
-    target = ing.outside_target(base or os.path.realpath(root), path) if why is None else None
+        stat, why = None, f"{st.shown_path(path)}: cannot be read ({exc.strerror or exc})"
+    target = st.outside_target(base or os.path.realpath(root), path) if why is None else None
     if target is not None and not allow_outside:
-        why = (f"{ing.shown_path(path)}: {OUTSIDE_LINK} (to {ing.shown_path(target)}); the file is not read "
+        why = (f"{st.shown_path(path)}: {OUTSIDE_LINK} (to {st.shown_path(target)}); the file is not read "
                f"(--allow-outside allows it)")
-    if not ing.is_utf8(rel):
-        why = (f"{ing.shown_path(path)}: the file name is not valid UTF-8 ({ascii(os.fsencode(rel))}); "
+    if not st.is_utf8(rel):
+        why = (f"{st.shown_path(path)}: the file name is not valid UTF-8 ({ascii(os.fsencode(rel))}); "
                f"the file is not read: rename it to ingest it")
     if why is not None:
         return path, shown, stat, None, why
@@ -160,19 +162,19 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     summary.reused = sum(item[3] is not None for item in todo)
     summary.read = len(todo) - summary.reused
     _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary, allow_outside)
-    summary.warnings.extend(f"{ing.shown_path(link)}: a symbolic link to a folder outside the capture tree "
-                            f"(to {ing.shown_path(target)}): not scanned (ingest never follows links to folders)"
+    summary.warnings.extend(f"{st.shown_path(link)}: a symbolic link to a folder outside the capture tree "
+                            f"(to {st.shown_path(target)}): not scanned (ingest never follows links to folders)"
                             for link, target in linked_out)
     for r in rows:
         r.pop("_file_error")
         r.pop("_content_role")
         r.pop("_view_problem", None)
         for k, v in r.items():  # parquet strings are UTF-8: a message may quote a path that is not
-            if isinstance(v, str) and not ing.is_utf8(v):
-                r[k] = ing.shown_path(v)
-    summary.root, summary.table = ing.shown_path(summary.root), ing.shown_path(summary.table)
-    summary.session_problems = [ing.shown_path(x) for x in summary.session_problems]
-    summary.warnings = [ing.shown_path(x) for x in summary.warnings]
+            if isinstance(v, str) and not st.is_utf8(v):
+                r[k] = st.shown_path(v)
+    summary.root, summary.table = st.shown_path(summary.root), st.shown_path(summary.table)
+    summary.session_problems = [st.shown_path(x) for x in summary.session_problems]
+    summary.warnings = [st.shown_path(x) for x in summary.warnings]
     rows.sort(key=lambda r: r["path"])
     write_table_atomic(rows_to_table(rows, "captures"), table_path, "captures")
     summary.files = len(rows)
@@ -182,21 +184,21 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
 
 
 def _session_files(config: dict, folder: Path, root: Path, allow_outside: bool) -> dict[str, dict | str]:
-    """Every file the session TOML names (``ing.session_files``) by key path → {"file": path
+    """Every file the session TOML names (``st.session_files``) by key path → {"file": path
     relative to the capture root (absolute where it lies outside and that is allowed), "sha256",
     "allow_outside" when outside, "real": its resolved path}, or why it is refused or unusable.
     Nothing is opened before it is known to be inside the session folder (or allowed) and a
     regular file."""
     out: dict[str, dict | str] = {}
-    for where, name in ing.session_files(config):
+    for where, name in st.session_files(config):
         try:
-            path, outside = ing.resolve_session_file(folder, name, allow_outside=allow_outside)
-        except ing.OutsideError as exc:
+            path, outside = st.resolve_session_file(folder, name, allow_outside=allow_outside)
+        except st.OutsideError as exc:
             out[where] = f"{exc}: refused (f2l ingest --allow-outside allows it)"
             continue
-        why = ing.regular_file(path)
+        why = st.regular_file(path)
         if why:
-            out[where] = f"flat-field file {name!r} {why} (at {ing.shown_path(path)})"
+            out[where] = f"flat-field file {name!r} {why} (at {st.shown_path(path)})"
             continue
         try:
             sha = file_sha256(path)
@@ -218,7 +220,7 @@ def _with_files(view: dict, config: dict, shot: int | None, files: dict) -> tupl
     falloff = view.get("falloff")
     if not (isinstance(falloff, dict) and falloff.get("file")):
         return view, ""
-    where = ing.key_where(config, shot, "falloff") + "/file"
+    where = st.key_where(config, shot, "falloff") + "/file"
     info = files.get(where)
     if not isinstance(info, dict):
         return view, f"{where}: {info or 'not resolved'}"
@@ -238,14 +240,14 @@ def _lens_problem(view: dict, row: dict, config: dict, shot: int | None) -> str:
     try:
         lens_from_view(view, int(row["width"]), int(row["height"]), row.get("focal_length_mm"))
     except LensError as exc:
-        return f"{ing.key_where(config, shot, exc.key)}: {exc} (the lens cannot place this view)"
+        return f"{st.key_where(config, shot, exc.key)}: {exc} (the lens cannot place this view)"
     return ""
 
 
 def _refuse(r: dict, root: Path, s: str, toml: str, summary: ing.IngestSummary, seen: dict) -> None:
     """Make a frame whose view cannot be used an ``error`` row and say so once per session and key."""
     problem = r["_view_problem"]
-    r["status"], r["message"], r["bracket_id"] = "error", f"{ing.shown_path(root / r['path'])}: {toml}: {problem}", None
+    r["status"], r["message"], r["bracket_id"] = "error", f"{st.shown_path(root / r['path'])}: {toml}: {problem}", None
     key = f"session {s}: {toml}: {problem}"
     if key not in seen:
         seen[key] = len(summary.warnings)
@@ -259,7 +261,7 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
     loose = [r for r in rows if ing._session_of(Path(r["path"])) is None]
     for r in rows:
         r["session"] = ing._session_of(Path(r["path"])) or ""
-    for k, group in enumerate(ing.split_by_time(loose, session_gap_min * 60.0)):
+    for k, group in enumerate(br.split_by_time(loose, session_gap_min * 60.0)):
         for r in group:
             r["session"] = f"{root.name or 'root'}-{k + 1:02d}"
     sessions = sorted({r["session"] for r in rows})
@@ -270,13 +272,13 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
         in_folder = (root / s).is_dir() and any(ing._session_of(Path(r["path"])) for r in members)
         is_loose = not any(ing._session_of(Path(r["path"])) for r in members)
         folder = root / s if in_folder else root
-        config, problem = ing.load_session_toml(folder) if (in_folder or is_loose) else ({}, "")
-        toml = ing.shown_path(folder / ing.SESSION_TOML)
+        config, problem = st.load_session_toml(folder) if (in_folder or is_loose) else ({}, "")
+        toml = st.shown_path(folder / st.SESSION_TOML)
         if problem:
             summary.session_problems.append(f"session {s}: {problem} (session ingested without it)")
         rels = {id(r): Path(r["path"]).relative_to(s).as_posix() if in_folder else r["path"] for r in members}
         summary.warnings.extend(f"session {s}: {toml}: {w}"
-                                for w in ing.unmatched_globs(config, list(rels.values())))
+                                for w in st.unmatched_globs(config, list(rels.values())))
         files = _session_files(config, folder, root, allow_outside)
         flat = {info["real"]: where for where, info in files.items() if isinstance(info, dict)}
         flat_rows = {}  # id(row) -> key path of a row that is a named flat field
@@ -289,9 +291,9 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
                            for r in members if id(r) in flat_rows and r["_file_error"]}
         for r in members:
             rel_in = rels[id(r)]
-            shot = ing.matched_shot(config, rel_in)
-            view, view_problem = _with_files(ing.view_for(config, rel_in), config, shot, files)
-            where = ing.key_where(config, shot, "falloff") + "/file"
+            shot = st.matched_shot(config, rel_in)
+            view, view_problem = _with_files(st.view_for(config, rel_in), config, shot, files)
+            where = st.key_where(config, shot, "falloff") + "/file"
             if not view_problem and where in unreadable_flat and "file" in view.get("falloff", {}):
                 view_problem = f"{where}: the flat-field file is unreadable ({unreadable_flat[where]})"
             r["_view_problem"] = view_problem or _lens_problem(view, r, config, shot)
@@ -314,7 +316,7 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
         for r in members:  # declared sky frames whose view cannot be used: not bracketed
             if r["_view_problem"] and r["role"] == "sky_bracket" and r["status"] == "ok":
                 _refuse(r, root, s, toml, summary, seen)
-        n_brackets = ing.assign_brackets(members, bracket_gap_s)
+        n_brackets = br.assign_brackets(members, bracket_gap_s)
         bad = {r["bracket_id"] for r in members if r["bracket_id"] and r["_view_problem"]}
         for r in members:  # detected brackets of such frames are dissolved
             if r["bracket_id"] in bad and r["_view_problem"]:
@@ -322,7 +324,7 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
             elif r["bracket_id"] in bad:
                 r["bracket_id"] = None
         summary.brackets += n_brackets - len(bad)
-        summary.bracket_list.extend(ing.bracket_summary(members))
+        summary.bracket_list.extend(br.bracket_summary(members))
         for r in members:  # content detection for what is still undecided
             if r["role_source"] != "none" or r["status"] != "ok":
                 continue

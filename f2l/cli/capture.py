@@ -101,7 +101,8 @@ def make_probes_cmd(
 
     A bracket, view or probe that fails (or a probe refused as black or uncovered) is a row with
     status "error"; the others are written. Exit code 4 when some failed, 1 when all did."""
-    from f2l.capture.probes import COLOUR_SPACES, make_probes
+    from f2l.capture.probe_rows import COLOUR_SPACES
+    from f2l.capture.probes import make_probes
 
     if colour not in COLOUR_SPACES:
         raise typer.BadParameter(f"expected one of {', '.join(COLOUR_SPACES)}", param_hint="--colour")

@@ -2,7 +2,7 @@
 
 - ``merge`` entry (key: the bracket id, its frames' paths and SHA-256s, the frames' ``view_json``
   (vignetting), ``view_max_side``): ``views/<bracket>.exr`` and ``.saturated.png`` from
-  :func:`f2l.capture.probes.merge_bracket_view`; ``done`` holds the ``probes`` row.
+  :func:`f2l.capture.views.merge_bracket_view`; ``done`` holds the ``probes`` row.
 - ``sphere`` entry (key: the session, the merge keys and ``view_json`` of its placed views, the
   grid): ``probes/<session>.exr`` + ``.coverage.png`` from
   :func:`f2l.capture.probes.assemble_session`, reading the merged views back from their entries;
@@ -13,7 +13,7 @@
   ``probe.exr``, area-resampled to the grid when its size differs; refused (``error``, naming
   the session and the file) when unreadable or when it fails the same check.
 - No row holds a NaN or an infinity: such a number makes the row an ``error`` that names it
-  (:func:`f2l.capture.probes.finite_row`), so nothing non-finite reaches a cache entry's JSON.
+  (:func:`f2l.capture.probe_rows.finite_row`), so nothing non-finite reaches a cache entry's JSON.
 
 Probes are in linear Rec.709 from the sky camera's colour matrix (``colour_space``, default) and in
 the session's tripod frame here; the chart's refinement and the turn to the face camera's frame
@@ -38,8 +38,8 @@ GIVEN_PROBE_VERSION = 2  # 2: black, uncovered or non-finite given probes refuse
 
 def _clean_row(row: dict, root) -> dict:
     """A stage row for a cache entry: no timing, no absolute path, no NaN (a non-finite number
-    makes the row an ``error`` naming it, :func:`f2l.capture.probes.finite_row`)."""
-    from f2l.capture.probes import finite_row
+    makes the row an ``error`` naming it, :func:`f2l.capture.probe_rows.finite_row`)."""
+    from f2l.capture.probe_rows import finite_row
 
     out = finite_row({k: v for k, v in row.items() if k != "seconds"})
     out.pop("seconds", None)
@@ -67,7 +67,7 @@ def merge_session(cache: Cache, root: Path, plan: SessionPlan, params: dict, cou
                          "colour_space": params.get("colour_space", "rec709")})
 
         def produce(tmp: Path, bid=bid, frames=frames) -> dict:
-            from f2l.capture.probes import merge_bracket_view
+            from f2l.capture.views import merge_bracket_view
 
             t0 = time.perf_counter()
             row, _ = merge_bracket_view(root, tmp, bid, frames, int(params["view_max_side"]),
@@ -96,7 +96,9 @@ def sphere_session(cache: Cache, plan: SessionPlan, merged: list[dict], grid_hw:
                     {"grid": list(grid_hw), "restore_sun": bool(restore_sun)})
 
     def produce(tmp: Path) -> dict:
-        from f2l.capture.probes import assemble_session, finite_row, load_view
+        from f2l.capture.probe_rows import finite_row
+        from f2l.capture.probes import assemble_session
+        from f2l.capture.views import load_view
 
         t0 = time.perf_counter()
         views = [load_view(m["entry"], m["row"], m["view_json"], m.get("focal_length_mm")) for m in placed]
