@@ -23,8 +23,8 @@ import pytest
 from typer.testing import CliRunner
 
 from f2l.cli import app
-from f2l.io.shards import (MAX_GRID_TEXELS, MAX_RECORD_PIXELS, BadRecord, FaceRecord,
-                           declared_size_problem, iter_records)
+from f2l.io.shards import BadRecord, FaceRecord, iter_records
+from f2l.io.record_limits import MAX_GRID_TEXELS, MAX_RECORD_PIXELS, declared_size_problem
 from f2l.lighting.grid import LatLongGrid
 
 GRID = LatLongGrid(16, 32)

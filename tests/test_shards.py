@@ -12,17 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from f2l.io.schema import SchemaError, arrow_schema, load_schema, table_errors, validate_table
-from f2l.io.shards import (
-    BadRecord,
-    FaceRecord,
-    ParquetAppender,
-    ShardWriter,
-    count_records,
-    iter_records,
-    pack_visibility,
-    write_side_photo,
-    write_table_atomic,
-)
+from f2l.io.shards import (BadRecord, FaceRecord, ParquetAppender, ShardWriter, count_records, iter_records,
+                           pack_visibility, write_table_atomic)
+from f2l.io.side_files import write_side_photo
 
 GRID_H, GRID_W = 8, 16
 
@@ -277,7 +269,7 @@ def test_side_photo_atomic(tmp_path):
 
 def test_side_probe_round_trip(tmp_path):
     pytest.importorskip("f2l.io.exr")
-    from f2l.io.shards import load_gt_probe, write_side_probe
+    from f2l.io.side_files import load_gt_probe, write_side_probe
 
     probe = np.random.default_rng(1).random((8, 16, 3)).astype(np.float32) * 1e6
     rel = write_side_probe(tmp_path, "face-2", probe)

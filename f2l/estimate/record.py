@@ -80,7 +80,7 @@ class InMemoryEstimate(NamedTuple):
 def estimate_in_memory(record, model_name: str, cfg: EstimatorConfig) -> InMemoryEstimate:
     """Estimate one face with one model in memory; never raises for a bad face (status
     ``bad_record``, ``bad_face`` or ``error`` with the message)."""
-    from f2l.io.shards import declared_size_problem
+    from f2l.io.record_limits import declared_size_problem
     from f2l.lighting.grid import LatLongGrid
 
     torch_threads(cfg.threads)

@@ -57,7 +57,8 @@ def run_estimates(
     ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
     EstimatorConfig's (ignored with ``config``)."""
     from f2l.estimate import resume
-    from f2l.io.shards import BadRecord, count_records, declared_size_problem, iter_records, shard_files
+    from f2l.io.shards import BadRecord, count_records, iter_records, shard_files
+    from f2l.io.record_limits import declared_size_problem
     from f2l.models.registry import model_class
 
     if executor not in ("local", "ray"):

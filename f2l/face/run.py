@@ -127,7 +127,7 @@ def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None, grid) 
     if not src.is_file():
         return None
     from f2l.io.exr import read_exr
-    from f2l.io.shards import write_side_probe
+    from f2l.io.side_files import write_side_probe
 
     probe = np.asarray(read_exr(src), dtype=np.float32)
     if probe.shape[:2] != grid.shape:  # e.g. a renderer's 128 x 256 truth for a 64 x 128 fit
@@ -143,7 +143,8 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
     """Fit every face of every photo into the shard directory ``out``; returns a summary."""
     from f2l.face.landmarker import FaceLandmarker
     from f2l.io.photo import PhotoError, load_photo
-    from f2l.io.shards import ShardWriter, write_side_photo
+    from f2l.io.shards import ShardWriter
+    from f2l.io.side_files import write_side_photo
     from f2l.io.tables import ParquetAppender
 
     out = Path(out)

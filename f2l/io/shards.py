@@ -12,7 +12,8 @@ validated against ``schemas/face_record.schema.json`` on write and (by default) 
 reader turns an unreadable file or an invalid record into a :class:`BadRecord` instead of
 raising, so one bad file never stops a batch. The generic table machinery (rows <-> Arrow,
 atomic Parquet writers, :class:`ParquetAppender` for result tables) lives in ``f2l.io.tables``
-and is re-exported here.
+and is re-exported here; the side files in :mod:`f2l.io.side_files`, the size limits in
+:mod:`f2l.io.record_limits`.
 
 A record from outside is read with bounds, before anything is allocated from what it declares
 (:func:`declared_size_problem`): a lighting grid of at most :data:`MAX_GRID_TEXELS` texels
@@ -58,84 +59,20 @@ __all__ = [
     "iter_records",
     "count_records",
     "shard_files",
-    "write_side_probe",
-    "write_side_photo",
-    "load_gt_probe",
     "write_table_atomic",
     "rows_to_table",
     "table_row",
     "pack_visibility",
     "unpack_visibility",
     "SchemaError",
-    "MAX_GRID_TEXELS",
-    "MAX_RECORD_PIXELS",
-    "max_grid_texels",
-    "max_record_pixels",
-    "declared_size_problem",
 ]
+
+from f2l.io.record_limits import _declared_bytes, declared_size_problem
 
 FACE_SCHEMA_NAME = "face_record"
 _NORMAL_TOLERANCE = 1e-3
 
-MAX_GRID_TEXELS = 1 << 20
-"""Most texels (grid_height * grid_width) a record's lighting grid may have: 1,048,576, e.g.
-1024 x 1024. f2l writes 64 x 128 (8,192) or 32 x 128; research grids are a few hundred a side.
-Raise with ``$F2L_MAX_GRID_TEXELS``."""
-MAX_RECORD_PIXELS = 1 << 20
-"""Most face pixels one record may have: 1,048,576. fit-faces writes about 10k (a 104-px crop),
-100k at most. Raise with ``$F2L_MAX_RECORD_PIXELS``."""
 _ROW_GROUP_SLACK_BYTES = 4 * MAX_TEXT_BYTES  # strings (meta_json up to 16 MiB, paths) and framing
-
-
-def _env_limit(name: str, default: int) -> int:
-    value = os.environ.get(name)
-    try:
-        return max(1, int(float(value))) if value else default
-    except (ValueError, OverflowError):
-        return default
-
-
-def max_grid_texels() -> int:
-    """The grid limit: ``$F2L_MAX_GRID_TEXELS`` when set, else :data:`MAX_GRID_TEXELS`."""
-    return _env_limit("F2L_MAX_GRID_TEXELS", MAX_GRID_TEXELS)
-
-
-def max_record_pixels() -> int:
-    """The pixel limit: ``$F2L_MAX_RECORD_PIXELS`` when set, else :data:`MAX_RECORD_PIXELS`."""
-    return _env_limit("F2L_MAX_RECORD_PIXELS", MAX_RECORD_PIXELS)
-
-
-def declared_size_problem(num_pixels: Any, grid_height: Any, grid_width: Any, *,
-                          min_pixels: int = 0) -> str | None:
-    """Why a record's declared sizes are refused (None when they are accepted): fewer than
-    ``min_pixels`` face pixels (a shard may store an empty record; ``f2l estimate`` asks for 1),
-    more than :func:`max_record_pixels`, an empty grid or one of more than :func:`max_grid_texels`
-    texels. Checked before anything is allocated from them."""
-    for name, value in (("num_pixels", num_pixels), ("grid_height", grid_height),
-                        ("grid_width", grid_width)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            return f"{name} is {value!r}, not an integer"
-    n, h, w = int(num_pixels), int(grid_height), int(grid_width)
-    if n < 0:
-        return f"num_pixels is negative ({n})"
-    if n < min_pixels:
-        return ("the record has no face pixels (num_pixels = 0)" if n == 0 else
-                f"the record has {n} face pixels, fewer than the {min_pixels} needed")
-    if n > max_record_pixels():
-        return (f"the record declares {n} face pixels, more than the {max_record_pixels()} "
-                f"accepted (F2L_MAX_RECORD_PIXELS)")
-    if h < 1 or w < 1:
-        return f"the lighting grid {h}x{w} is empty"
-    if h * w > max_grid_texels():
-        return (f"the record declares a {h}x{w} lighting grid = {h * w} texels, more than the "
-                f"{max_grid_texels()} accepted (F2L_MAX_GRID_TEXELS)")
-    return None
-
-
-def _declared_bytes(num_pixels: int, grid_height: int, grid_width: int) -> int:
-    """Bytes the bulk columns of a record of these (accepted) sizes hold, uncompressed."""
-    n = int(num_pixels)
-    return n * (2 * 4 + 3 * 3 * 4 + 1) + n * (-(-int(grid_height) * int(grid_width) // 8))
 
 
 def _face_id_pattern() -> re.Pattern:
@@ -632,67 +569,5 @@ def count_records(shards: str | os.PathLike | Iterable[str | os.PathLike]) -> in
 
 
 # -- side files ------------------------------------------------------------------------------
-def _check_face_id(face_id: str) -> None:
-    if not isinstance(face_id, str) or not _face_id_pattern().match(face_id):
-        raise SchemaError(f"face id {face_id!r} is not file-name safe "
-                          f"(pattern {_face_id_pattern().pattern})")
 
-
-def _atomic_side_write(out_dir: Path, rel: str, write) -> str:
-    final = Path(out_dir) / rel
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.stem}.{os.getpid()}.tmp{final.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, final)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return rel
-
-
-def write_side_probe(out_dir: str | os.PathLike, face_id: str, probe: np.ndarray) -> str:
-    """Write a float32 (H, W, 3) probe to ``out_dir/probes/<face_id>.exr``; returns the relative path."""
-    from f2l.io.exr import write_exr
-
-    _check_face_id(face_id)
-    probe = np.asarray(probe, dtype=np.float32)
-    if probe.ndim != 3 or probe.shape[2] != 3:
-        raise ValueError(f"face {face_id!r}: probe must be (H, W, 3), got {probe.shape}")
-    if not np.isfinite(probe).all():
-        raise ValueError(f"face {face_id!r}: probe has non-finite values")
-    return _atomic_side_write(Path(out_dir), f"probes/{face_id}.exr",
-                              lambda p: write_exr(p, probe))
-
-
-def write_side_photo(out_dir: str | os.PathLike, face_id: str, image: np.ndarray,
-                     fmt: str = "png", exif=None) -> str:
-    """Write a uint8 (H, W, 3) display image to ``out_dir/photos/<face_id>.<fmt>``; relative path.
-
-    ``exif`` (a ``PIL.Image.Exif``) is embedded when given (PNG eXIf chunk or JPEG APP1)."""
-    from PIL import Image
-
-    _check_face_id(face_id)
-    fmt = fmt.lower()
-    if fmt not in ("png", "jpg", "jpeg"):
-        raise ValueError(f"photo format must be png or jpg, got {fmt!r}")
-    image = np.asarray(image)
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"face {face_id!r}: photo must be uint8 (H, W, 3), got "
-                         f"{image.dtype} {image.shape}")
-    pil_fmt = "PNG" if fmt == "png" else "JPEG"
-    extra = {} if exif is None else {"exif": exif}
-    return _atomic_side_write(Path(out_dir), f"photos/{face_id}.{fmt}",
-                              lambda p: Image.fromarray(image).save(p, format=pil_fmt, **extra))
-
-
-def load_gt_probe(shard_dir: str | os.PathLike, record: FaceRecord) -> np.ndarray | None:
-    """The ground-truth probe (H, W, 3) float32 of ``record``, or None when it has none."""
-    if record.gt_probe_path is None:
-        return None
-    from f2l.io.exr import read_exr
-
-    path = Path(shard_dir) / record.gt_probe_path
-    if not path.is_file():
-        raise FileNotFoundError(f"face {record.face_id!r}: ground-truth probe {path} not found")
-    return np.asarray(read_exr(path), dtype=np.float32)
 

@@ -129,7 +129,8 @@ class FaceFitter:
         from f2l.face.fit import FaceFit, face_record, fit_photo_faces
         from f2l.io.photo import load_photo
         from f2l.face.run import _overlay, _photo_overlay, face_id
-        from f2l.io.shards import ShardWriter, write_side_photo
+        from f2l.io.shards import ShardWriter
+        from f2l.io.side_files import write_side_photo
 
         t0 = time.perf_counter()
         rel = row["path"]

@@ -64,7 +64,8 @@ def twin_from_mesh(fitted, vertices, faces, vnormals, focal_px: float, image_hw,
 def compare_geometry(fitted_shards, truth_shards, twin_out=None, threads: int = 2) -> list[dict]:
     """One row per fitted face with its normal-error distribution; with ``twin_out``, the
     true-geometry twins are written there as shards (same face ids, ground-truth probes copied)."""
-    from f2l.io.shards import ShardWriter, iter_records, load_gt_probe, write_side_probe
+    from f2l.io.shards import ShardWriter, iter_records
+    from f2l.io.side_files import load_gt_probe, write_side_probe
 
     truth = {r.face_id: r for r in iter_records(truth_shards) if getattr(r, "ok", False)}
     fitted_dirs = [Path(p) for p in ([fitted_shards] if isinstance(fitted_shards, (str, Path))

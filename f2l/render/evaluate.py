@@ -160,7 +160,8 @@ def write_true_geometry_twins(fitted_dir: Path, render_dir: Path, out_dir: Path,
     """Twin every fitted record of a rendered photo on the renderer's true mesh (f2l's camera at
     the origin: the render's camera sat at +Z ``camera_distance_cm``); ground-truth probes copied."""
     from f2l.render.compare_geometry import twin_from_mesh
-    from f2l.io.shards import ShardWriter, iter_records, load_gt_probe, write_side_probe
+    from f2l.io.shards import ShardWriter, iter_records
+    from f2l.io.side_files import load_gt_probe, write_side_probe
 
     cases = load_cases(render_dir)
     written, skipped = 0, 0

@@ -66,7 +66,8 @@ def write_synthetic_shards(
     ``meta["capture"]`` (time and place, ``f2l.io.capture.capture_for_elevation``) at which the
     real sun stood at the synthetic sun's elevation, for the estimator's sun prior.
     """
-    from f2l.io.shards import FaceRecord, ShardWriter, write_side_photo, write_side_probe
+    from f2l.io.shards import FaceRecord, ShardWriter
+    from f2l.io.side_files import write_side_photo, write_side_probe
     from f2l.io.capture import capture_for_elevation, capture_to_meta
     from f2l.synth.render import make_synthetic_set
 
