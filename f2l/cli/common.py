@@ -8,6 +8,12 @@ import typer
 
 JsonOut = Annotated[bool, typer.Option("--json", help="Print one JSON summary on stdout, nothing else (no progress, no table).")]
 """The ``--json`` option every command takes: ``json_out: JsonOut = False``."""
+Grid = Annotated[str, typer.Option("--grid", help="Lighting grid HxW, e.g. 64x128 (probes and transport are on it).")]
+"""``--grid``: ``grid: Grid = "64x128"`` (parsed by :func:`parse_grid`)."""
+Seed = Annotated[int, typer.Option("--seed", help="Random seed: everything the command draws is deterministic from it.")]
+"""``--seed``: ``seed: Seed = 0``."""
+OvercastFraction = Annotated[float, typer.Option("--overcast-fraction", help="Fraction of overcast skies.")]
+"""``--overcast-fraction``: ``overcast_fraction: OvercastFraction = 0.25``."""
 
 
 def parse_grid(grid: str):

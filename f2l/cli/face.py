@@ -9,14 +9,14 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import JsonOut, exit_for, fail, parse_grid
+from f2l.cli.common import Grid, JsonOut, exit_for, fail, parse_grid
 
 
 def fit_faces_cmd(
     photos: list[Path] = typer.Argument(..., help="Photos (JPEG/PNG/TIFF or camera RAW) or folders of them."),
     out: Path = typer.Option(..., "--out", help="Output shard directory."),
     resolution: int = typer.Option(104, help="Working face resolution: the square crop around a face is resampled to this many px."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
+    grid: Grid = "64x128",
     depth: str = typer.Option("rigid", help="Face shape: rigid (MediaPipe's canonical face, posed by a perspective fit to the landmarks), canonical (landmark x, y with the posed canonical depth) or landmarks (landmark x, y, z: per person, noisier)."),
     overlays: bool = typer.Option(True, "--overlays/--no-overlays", help="Write a debug overlay PNG per face."),
     landmarker: Optional[Path] = typer.Option(None, help="face_landmarker.task to use (default: $F2L_FACE_LANDMARKER or the pinned copy)."),
@@ -100,7 +100,7 @@ def bench_faces_cmd(
     faces: int = typer.Option(4, help="Synthetic photos to fit (after one warm-up photo)."),
     image_size: int = typer.Option(256, help="Synthetic photo size in pixels."),
     resolution: int = typer.Option(104, help="Working face resolution (as `f2l fit-faces --resolution`)."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW of the transport."),
+    grid: Grid = "64x128",
     photo: Optional[list[Path]] = typer.Option(None, "--photo", help="Also time these real photos (repeatable)."),
     threads: int = typer.Option(2, help="Embree threads."),
     json_out: JsonOut = False,

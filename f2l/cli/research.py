@@ -11,16 +11,16 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import JsonOut, exit_for, fail as _fail, parse_grid as _grid
+from f2l.cli.common import Grid, JsonOut, OvercastFraction, Seed, exit_for, fail as _fail, parse_grid as _grid
 
 
 def synth(
     out: Path = typer.Option(..., "--out", help="Output shard directory."),
     n: int = typer.Option(12, "--n", help="Number of synthetic faces."),
-    seed: int = typer.Option(0, help="Random seed (everything is deterministic from it)."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW."),
+    seed: Seed = 0,
+    grid: Grid = "64x128",
     image_size: int = typer.Option(128, help="Photo size in pixels (square)."),
-    overcast_fraction: float = typer.Option(0.25, help="Fraction of overcast skies."),
+    overcast_fraction: OvercastFraction = 0.25,
     sun_elevation_deg: str = typer.Option(
         "5:80", "--sun-elevation-deg", metavar="MIN:MAX",
         help="Range of clear-sky sun elevations in degrees (uniform; azimuths cover the full circle). "
@@ -63,9 +63,9 @@ def bench(
     model: Optional[list[str]] = typer.Option(None, "--model", "-m", help="Models (default: all installed)."),
     out: Path = typer.Option(Path("bench_out"), "--out", help="Output directory (table, plot)."),
     image_size: int = typer.Option(128, help="Synthetic photo size (128 gives ~10k face pixels)."),
-    grid: str = typer.Option("64x128", help="Lighting grid HxW."),
+    grid: Grid = "64x128",
     threads: int = typer.Option(2, help="Threads."),
-    seed: int = typer.Option(1, help="Seed of the synthetic set."),
+    seed: Seed = 1,
     sun_skip_faces: int = typer.Option(2, help="Overcast faces on which each compact-sun model (sunsky, plugins) runs with and without its exact sun core (0: none)."),
 ) -> None:
     """Error versus run time of the installed models on synthetic faces (table + PNG plot)."""
@@ -120,7 +120,7 @@ def fit_probe_cmd(
     probes: list[Path] = typer.Argument(..., help="Lat-long HDR probes (.exr, .hdr, .pfm, float .tif) or folders of them."),
     model: str = typer.Option(..., "--model", "-m", help="Lighting model name."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write fit_probe.csv and fitted probes here."),
-    grid: str = typer.Option("64x128", help="Model grid HxW (probes are resampled to it)."),
+    grid: Grid = "64x128",
     json_out: JsonOut = False,
 ) -> None:
     """Fit a lighting model directly to HDR probes (paper Table 1); report the sun angle where known.
@@ -143,9 +143,9 @@ def fit_probe_cmd(
 def sky_corpus(
     out: Path = typer.Option(..., "--out", help="Output folder for the sky EXRs (+ JSON side files)."),
     n: int = typer.Option(400, "--n", help="Number of skies."),
-    seed: int = typer.Option(0, help="Seed."),
-    grid: str = typer.Option("64x128", help="Probe grid HxW."),
-    overcast_fraction: float = typer.Option(0.25, help="Fraction of overcast skies."),
+    seed: Seed = 0,
+    grid: Grid = "64x128",
+    overcast_fraction: OvercastFraction = 0.25,
     json_out: JsonOut = False,
 ) -> None:
     """Write the project's default sky corpus (CIE clear + overcast skies) for `f2l prior build`."""
@@ -163,7 +163,7 @@ def build_prior_cmd(
     out: Path = typer.Option(..., "--out", help="Prior JSON to write."),
     components: int = typer.Option(6, help="GMM components."),
     seed: int = typer.Option(0, help="Seed of the GMM fit."),
-    grid: str = typer.Option("64x128", help="Model grid HxW."),
+    grid: Grid = "64x128",
     json_out: JsonOut = False,
 ) -> None:
     """Fit the model to every probe, then a GMM over its prior features: the model's prior.
@@ -200,7 +200,7 @@ def scale_report_cmd(
     faces: list[int] = typer.Option([10, 200], "--faces", help="Dataset sizes (repeatable)."),
     model: str = typer.Option("sh9", "--model", "-m", help="Lighting model to estimate with."),
     image_size: int = typer.Option(96, help="Synthetic photo size in pixels."),
-    grid: str = typer.Option("32x64", help="Lighting grid HxW."),
+    grid: Grid = "32x64",
     build: bool = typer.Option(False, "--build", help="Instead: build-dataset on a tree of face photos, local against --executor ray (f2l.pipeline.scale)."),
     workers: int = typer.Option(2, "--workers", min=1, help="--build: CPUs of the local Ray."),
     json_out: JsonOut = False,

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import JsonOut, exit_for, fail as _fail
+from f2l.cli.common import JsonOut, Seed, exit_for, fail as _fail
 
 
 def models(json_out: JsonOut = False) -> None:
@@ -147,7 +147,7 @@ def evaluate(
 def demo(
     out: Path = typer.Option(Path("demo_out"), "--out", help="Output directory."),
     n: int = typer.Option(12, "--n", help="Number of synthetic faces."),
-    seed: int = typer.Option(0, help="Seed."),
+    seed: Seed = 0,
     model: Optional[list[str]] = typer.Option(None, "--model", "-m", help="Models (default: all built-in)."),
 ) -> None:
     """Synthesise faces, estimate with every built-in model, evaluate, and write pictures."""
