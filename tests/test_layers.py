@@ -18,7 +18,8 @@ LAYERS = (
     ("metrics",),
     ("estimate",),
     ("synth",),
-    ("pipeline", "render", "testing"),
+    ("pipeline", "prior", "render", "testing"),
+    ("evaluation",),
     ("report",),
     ("bench", "demo", "dev"),
     ("api", "cli"),
@@ -26,8 +27,8 @@ LAYERS = (
 """f2l's packages (and top-level modules) by layer. ``face`` (photo decoding, landmarks, the face
 fit), ``colour`` (which decodes chart photos with it) and ``capture`` (whose ingest detects faces and
 charts to give files a role) sit below ``estimate``;
-``synth`` (synthetic faces and skies) above it; the evaluation renders, the build pipeline and the
-test fixtures above those; benchmarks, the Python API and the command line on top."""
+``synth`` (synthetic faces and skies) above it; the evaluation renders, the prior builder, the build pipeline and
+the test fixtures above those; the evaluation harness (render, fit, estimate, score) above them; benchmarks, the Python API and the command line on top."""
 
 
 def _package(module: str) -> str:
