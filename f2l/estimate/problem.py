@@ -249,8 +249,9 @@ class FaceProblem:
             return torch.einsum("lk,bkc->blc", self.basis, params.reshape(params.shape[0], -1, 3))
         return self.model.radiance(params)
 
-    def objective(self, params, albedo, ground_albedo):
-        """Per-start objective (B,) and its data term (B,)."""
+    def data_term(self, params, albedo, ground_albedo) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Per-start data term (B,): mean Charbonnier(s - s*) / mean(s*), plus the clipped pixels'
+        censored terms; and the radiance (B, L, 3) where the forward model computed it."""
         cfg = self.cfg
         tl, rad = self.light_transport(params, ground_albedo)
         pred = self.apparent(albedo)[:, None, :] * tl
@@ -276,27 +277,55 @@ class FaceProblem:
             if clip_extra is not None:
                 clip_spec = clip_extra if clip_spec is None else clip_spec + clip_extra
             data = data + self.clipped_term(self._sky_parts, albedo, ground_albedo, clip_spec) / (n * self.target_scale)
-        total = data + cfg.light_prior_weight * self.model.prior_nll(params)
-        if cfg.sun_elevation_prior is not None and isinstance(self.model, SunAngles):
-            el0, sigma = cfg.sun_elevation_prior
-            z = (params[:, self.model.sun_angles.elevation] - el0) / sigma
-            total = total + cfg.sun_prior_weight * 0.5 * z * z
-        if cfg.fixed_albedo is None:
-            total = total + self.albedo_prior_weight * albedo_prior_nll(albedo)
-        if cfg.negativity_weight > 0 and not self.sky:
-            if self.linear:
-                rad = torch.einsum("lk,bkc->blc", self.neg_basis, params.reshape(params.shape[0], -1, 3))
-                w = self.neg_weights
-            else:
-                w = self.d_omega / self.d_omega.sum()
-            mean_l = (rad.clamp_min(0) * w[None, :, None]).sum((1, 2)) / 3
-            neg = (torch.relu(-rad) ** 2 * w[None, :, None]).sum((1, 2)) / 3
-            total = total + cfg.negativity_weight * neg / (mean_l.detach() ** 2 + 1e-12)
+        return data, rad
+
+    def light_prior(self, params) -> torch.Tensor:
+        """w_l psi_l(theta), the model's prior NLL (B,)."""
+        return self.cfg.light_prior_weight * self.model.prior_nll(params)
+
+    def sun_elevation_term(self, params) -> torch.Tensor | None:
+        """The capture's sun-elevation prior (``sun_elevation_prior``), (B,) or None."""
+        cfg = self.cfg
+        if cfg.sun_elevation_prior is None or not isinstance(self.model, SunAngles):
+            return None
+        el0, sigma = cfg.sun_elevation_prior
+        z = (params[:, self.model.sun_angles.elevation] - el0) / sigma
+        return cfg.sun_prior_weight * 0.5 * z * z
+
+    def albedo_term(self, albedo) -> torch.Tensor | None:
+        """w_rho psi_rho(rho), the skin-albedo prior (B,), or None for a fixed albedo."""
+        return None if self.cfg.fixed_albedo is not None else self.albedo_prior_weight * albedo_prior_nll(albedo)
+
+    def negativity_term(self, params, rad) -> torch.Tensor | None:
+        """w_neg mean dOmega relu(-l)^2 / mean(l)^2 (B,) for models whose radiance can go
+        negative (not ``sky`` models), or None."""
+        cfg = self.cfg
+        if not (cfg.negativity_weight > 0 and not self.sky):
+            return None
+        if self.linear:
+            rad = torch.einsum("lk,bkc->blc", self.neg_basis, params.reshape(params.shape[0], -1, 3))
+            w = self.neg_weights
+        else:
+            w = self.d_omega / self.d_omega.sum()
+        mean_l = (rad.clamp_min(0) * w[None, :, None]).sum((1, 2)) / 3
+        neg = (torch.relu(-rad) ** 2 * w[None, :, None]).sum((1, 2)) / 3
+        return cfg.negativity_weight * neg / (mean_l.detach() ** 2 + 1e-12)
+
+    def objective(self, params, albedo, ground_albedo):
+        """Per-start objective (B,) and its data term (B,)."""
+        data, rad = self.data_term(params, albedo, ground_albedo)
+        total = data + self.light_prior(params)
+        for term in (self.sun_elevation_term(params), self.albedo_term(albedo), self.negativity_term(params, rad)):
+            if term is not None:
+                total = total + term
         return total, data
 
     # -- initial points ----------------------------------------------------------------------------------
-    def sun_search_starts(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
-        """(S, P) starts from the global sun search (sun_search.py) for a ``compact-sun`` model."""
+    def search_setup(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What the global sun search scores (sun_search.py), for a ``compact-sun`` model: the
+        candidate sun texels (k,), the model's sky shapes (S, P), the unit-weight sky of each
+        candidate and shape as block means (k, S, nb, 3) and the block means' E_h weights (nb,).
+        The same for every face of one grid, model and config."""
         from f2l.estimate import sun_search
         from f2l.lighting.grid import LatLongGrid as Grid
 
@@ -320,8 +349,24 @@ class FaceProblem:
         k, S = params.shape[:2]
         sky_blocks = sky.reshape(k, S, -1, 3)
         e_blocks = np.bincount(self.hybrid.block_of, weights=self.e_sky.numpy(), minlength=sky_blocks.shape[2])
-        found = sun_search.search(self.hybrid.t_blk.numpy(), self.g.numpy(), self.transport.columns,
-                                  self.target.numpy(), grid, texels, sky_blocks, e_blocks, ground_albedo)
+        return texels, shapes, sky_blocks, e_blocks
+
+    def search_scores(self, setup, ground_albedo: float):
+        """This face's scores of every candidate of ``setup`` (:meth:`search_setup`;
+        ``sun_search.score``)."""
+        from f2l.estimate import sun_search
+
+        texels, _, sky_blocks, e_blocks = setup
+        return sun_search.score(self.hybrid.t_blk.numpy(), self.g.numpy(), self.transport.columns,
+                                self.target.numpy(), self.grid, texels, sky_blocks, e_blocks, ground_albedo)
+
+    def starts_from(self, found, shapes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+        """(S, P) starts from the search's candidates ``found`` (best first, the sun-less one
+        last): the best ``sun_starts - 1`` distinct suns and the sun-less sky, weights psi / the
+        albedo's apparent value."""
+        from f2l.estimate import sun_search
+
+        cfg, layout = self.cfg, self.model.sun_layout
         starts = []
         sunny = sun_search.distinct(found[:-1], max(1, cfg.sun_starts - 1))
         for c in sunny + found[-1:]:
@@ -334,8 +379,16 @@ class FaceProblem:
             if layout.kappa is not None:
                 p[layout.kappa] = cfg.sun_kappa_init
             starts.append(p)
-        self.search_candidates = found
         return np.stack(starts)
+
+    def sun_search_starts(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
+        """(S, P) starts from the global sun search (sun_search.py) for a ``compact-sun`` model."""
+        from f2l.estimate import sun_search
+
+        setup = self.search_setup()
+        found = sun_search.pick(self.search_scores(setup, ground_albedo), self.grid)
+        self.search_candidates = found
+        return self.starts_from(found, setup[1], albedo)
 
     def least_squares_start(self, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
         """theta minimising ||rho ⊙ (T B theta) - s*||^2 (small ridge), for a linear model."""

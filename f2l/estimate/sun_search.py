@@ -92,34 +92,58 @@ def _nnls2(h11, h12, h22, b1, b2):
     return best
 
 
-def search(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid,
-           texels: np.ndarray, sky_blocks: np.ndarray, e_blocks: np.ndarray, ground_albedo: float,
-           keep: int = 256) -> list[SunCandidate]:
-    """Score every candidate texel x sky shape; returns the best ``keep`` sorted by residual, then
-    the best sun-less candidate (module docstring).
+@dataclass
+class SearchScores:
+    """Every candidate's score (module docstring): the candidate ``texels`` (k,), per texel x sky
+    shape the best non-negative per-channel psi_sky and psi_sun (k, S, 3) and their weighted
+    squared residual ``total`` (k, S); the same skies without a sun (``sky_psi``, ``sky_total``);
+    ``yy`` the weighted squared norm of the observation (the residual of predicting zero)."""
+
+    texels: np.ndarray
+    psi_sky: np.ndarray
+    psi_sun: np.ndarray
+    total: np.ndarray
+    sky_psi: np.ndarray
+    sky_total: np.ndarray
+    yy: float
+
+
+def _weighted_rows(t_blk, g, y):
+    """The search's pixel rows (at most MAX_SEARCH_PIXELS, evenly strided) and their weights
+    1 / (mean shading + its median): dark, shadowed pixels count as much as bright ones."""
+    stride = max(1, int(math.ceil(len(y) / MAX_SEARCH_PIXELS)))
+    rows = slice(None, None, stride)
+    yy = y[rows]
+    wts = 1.0 / (yy.mean(1) + np.median(yy.mean(1)) + 1e-12)
+    Z = np.concatenate([t_blk[rows], g[rows, None]], axis=1)  # (n', nb + 1)
+    return rows, wts, Z * wts[:, None], yy * wts[:, None]
+
+
+def _sky_coefficients(sky_blocks: np.ndarray, e_blocks: np.ndarray, rg: float) -> np.ndarray:
+    """u[..., c, :] = [block means of the unit sky f_c, (rho_g / pi) E_h(f_c)]: the coefficients
+    of Z = [T_blk | g] that give its shading; ``sky_blocks`` (..., nb, 3)."""
+    sky_t = np.swapaxes(sky_blocks, -1, -2)  # (..., 3, nb)
+    return np.concatenate([sky_t, rg * (sky_t @ e_blocks)[..., None]], axis=-1)
+
+
+def score(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid,
+          texels: np.ndarray, sky_blocks: np.ndarray, e_blocks: np.ndarray, ground_albedo: float) -> SearchScores:
+    """Score every candidate texel x sky shape (module docstring).
 
     t_blk (N, nb) block transport, g (N,) ground row sums, ``columns(texels) -> (N, k)`` exact T
     columns, y (N, 3) observed shading, ``texels`` (k,) candidate sun texels, sky_blocks
     (k, S, nb, 3) unit-weight sky block means for each candidate and shape, e_blocks (nb,)
     horizontal-irradiance weights of the block means (E_h = e_blocks . m).
     """
-    n = len(y)
-    stride = max(1, int(math.ceil(n / MAX_SEARCH_PIXELS)))
-    rows = slice(None, None, stride)
-    Z = np.concatenate([t_blk[rows], g[rows, None]], axis=1)  # (n', nb + 1)
+    rows, wts, Zw, yw = _weighted_rows(t_blk, g, y)
     C = columns(texels, rows=rows) / grid.solid_angles_flat[texels][None, :]  # point sun, unit irradiance
-    yy = y[rows]
-    wts = 1.0 / (yy.mean(1) + np.median(yy.mean(1)) + 1e-12)
-    Zw, Cw, yw = Z * wts[:, None], C * wts[:, None], yy * wts[:, None]
+    Cw = C * wts[:, None]
     G_zz, G_zc, c_sq = Zw.T @ Zw, Zw.T @ Cw, (Cw * Cw).sum(0)
     zy, cy = Zw.T @ yw, Cw.T @ yw  # (nb + 1, 3), (k, 3)
-    k, S, nb, _ = sky_blocks.shape
     rg = ground_albedo / math.pi
     sin_el = grid.directions_flat[texels, 1]
     s = rg * sin_el  # ground bounce of the unit sun
-    # u[k, s, c, :] = [block means of f_c, (rho_g / pi) E_h(f_c)] (the coefficients of Z)
-    sky_t = sky_blocks.transpose(0, 1, 3, 2)  # (k, S, 3, nb)
-    u = np.concatenate([sky_t, rg * (sky_t @ e_blocks)[..., None]], axis=3)  # (k, S, 3, nb + 1)
+    u = _sky_coefficients(sky_blocks, e_blocks, rg)  # (k, S, 3, nb + 1)
     h11 = np.einsum("ksci,ksci->ksc", u, u @ G_zz)
     cross = G_zc.T + s[:, None] * G_zz[-1][None, :]  # (k, nb + 1): Z^T b per candidate
     h12 = np.einsum("ksci,ki->ksc", u, cross)
@@ -131,11 +155,58 @@ def search(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLo
     total = val.sum(-1) + yy_sum  # (k, S) weighted squared residual
     sky_x = np.maximum(b1, 0.0) / np.maximum(h11, 1e-300)  # the same skies without a sun
     sky_total = (-sky_x * np.maximum(b1, 0.0)).sum(-1) + yy_sum
-    order = np.argsort(total, axis=None)[:keep]
-    out = [_candidate(grid, texels, flat, S, x1, x2, total) for flat in order]
-    best_sky = int(np.argmin(sky_total))
-    out.append(_candidate(grid, texels, best_sky, S, sky_x, np.zeros_like(x2), sky_total))
+    return SearchScores(np.asarray(texels), x1, x2, total, sky_x, sky_total, yy_sum)
+
+
+def pick(scores: SearchScores, grid: LatLongGrid, keep: int = 256) -> list[SunCandidate]:
+    """The best ``keep`` candidates sorted by residual, then the best sun-less candidate."""
+    S = scores.total.shape[1]
+    order = np.argsort(scores.total, axis=None)[:keep]
+    out = [_candidate(grid, scores.texels, flat, S, scores.psi_sky, scores.psi_sun, scores.total) for flat in order]
+    best_sky = int(np.argmin(scores.sky_total))
+    out.append(_candidate(grid, scores.texels, best_sky, S, scores.sky_psi, np.zeros_like(scores.psi_sun),
+                          scores.sky_total))
     return out
+
+
+def search(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid,
+           texels: np.ndarray, sky_blocks: np.ndarray, e_blocks: np.ndarray, ground_albedo: float,
+           keep: int = 256) -> list[SunCandidate]:
+    """Score every candidate texel x sky shape (:func:`score`); returns the best ``keep`` sorted
+    by residual, then the best sun-less candidate (:func:`pick`)."""
+    return pick(score(t_blk, g, columns, y, grid, texels, sky_blocks, e_blocks, ground_albedo), grid, keep)
+
+
+def combine(scores: list[SearchScores], weights: np.ndarray) -> SearchScores:
+    """One light for several faces: each candidate scored by the weighted sum of the faces'
+    relative residuals (total / yy), with the faces' psi averaged with the same weights. Each
+    face keeps its own psi per candidate here (a relaxation of one shared light: its scale is the
+    face's albedo and exposure); the joint fit then ties them (f2l.estimate.joint)."""
+    w = np.asarray(weights, np.float64)
+    w = w / w.sum()
+    total = sum(wi * s.total / max(s.yy, 1e-300) for wi, s in zip(w, scores))
+    sky_total = sum(wi * s.sky_total / max(s.yy, 1e-300) for wi, s in zip(w, scores))
+    mean = lambda name: sum(wi * getattr(s, name) for wi, s in zip(w, scores))  # noqa: E731
+    return SearchScores(scores[0].texels, mean("psi_sky"), mean("psi_sun"), total, mean("sky_psi"), sky_total, 1.0)
+
+
+def relative_residual(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid, sun_texel: int,
+                      sky_block_means: np.ndarray, e_blocks: np.ndarray, ground_albedo: float,
+                      w_sky: np.ndarray, w_sun: np.ndarray) -> float:
+    """How well one given light explains a face, in the search's metric: the weighted squared
+    residual of the shading of w_sky ⊙ f + w_sun ⊙ (a point sun at ``sun_texel``), with one free
+    non-negative scale per channel (the face's albedo and exposure), over the observation's
+    weighted squared norm. ``sky_block_means`` (nb, 3) the unit sky f's block means."""
+    rows, wts, Zw, yw = _weighted_rows(t_blk, g, y)
+    c = columns(np.asarray([sun_texel]), rows=rows)[:, 0] / grid.solid_angles_flat[sun_texel]
+    rg = ground_albedo / math.pi
+    b = (c + rg * grid.directions_flat[sun_texel, 1] * g[rows]) * wts  # the unit sun's weighted shading
+    u = _sky_coefficients(sky_block_means, e_blocks, rg)  # (3, nb + 1)
+    pred = (Zw @ u.T) * np.asarray(w_sky)[None, :] + b[:, None] * np.asarray(w_sun)[None, :]  # (n', 3)
+    pp, py = (pred * pred).sum(0), (pred * yw).sum(0)
+    k = np.maximum(py, 0.0) / np.maximum(pp, 1e-300)
+    resid = yw - k[None, :] * pred
+    return float((resid * resid).sum() / max(float((yw * yw).sum()), 1e-300))
 
 
 def _candidate(grid, texels, flat, S, x1, x2, total) -> SunCandidate:
