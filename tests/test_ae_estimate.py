@@ -11,7 +11,8 @@ import torch
 
 from f2l_builtin_models.autoencoder.corpus import random_ae_sky
 from f2l.estimate import EstimatorConfig, FaceObservation, estimate
-from f2l.estimate.prior_build import fit_probes, write_fit_report
+from f2l.prior.build import fit_probes
+from f2l.prior.fit_report import write_fit_report
 from f2l.estimate.probe_fit import fit_probe
 from f2l.io.exr import write_exr
 from f2l.lighting.grid import LatLongGrid, angles_from_direction

@@ -1,4 +1,4 @@
-"""GMM priors (model_prior), the sky corpus and prior building (prior_build), and the
+"""GMM priors (model_prior), the sky corpus and prior building (f2l.prior), and the
 `f2l sky-corpus` / `f2l fit-probe` / `f2l build-prior` commands."""
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from typer.testing import CliRunner
 
 from f2l.cli import app
 from f2l.estimate.model_prior import FORMAT, GmmPrior, fit_gmm, load_prior, save_prior
-from f2l.estimate.prior_build import (ProbeRecord, build_prior, fit_probes, list_probes, write_fit_report)
-from f2l.synth.skies import write_sky_corpus
+from f2l.prior.build import ProbeRecord, build_prior, fit_probes, list_probes
+from f2l.prior.corpus import write_sky_corpus
+from f2l.prior.fit_report import write_fit_report
 from f2l.io.exr import read_exr
 from f2l.lighting.grid import LatLongGrid
 from f2l_builtin_models import sunsky_prior
@@ -398,7 +399,7 @@ def test_cli_fit_probe_all_bad_and_unknown_model(tmp_path, runner):
 
 
 def test_fit_report_breaks_the_sky_errors_down_by_kind():
-    from f2l.estimate.prior_build import ProbeRecord, kind_table
+    from f2l.prior.fit_report import kind_table
 
     def rec(kind, full, sky, ff=None):
         extra = {"metrics": {"Full-dω MAE (l)": full, "Sky-dω MAE (l)": sky}}

@@ -321,7 +321,7 @@ def test_render_skies_writes_a_hosek_wilkie_corpus_that_build_prior_reads(tmp_pa
     """`f2l render-skies`: Hosek-Wilkie probes with side files; the same draw for the same index
     whatever --n is; the sun where the side file says; a warm sun and a blue sky (physics, not
     f2l's own sun-colour model); and `f2l build-prior` fits them."""
-    from f2l.estimate.prior_build import fit_probes, list_probes
+    from f2l.prior.build import fit_probes, list_probes
     from f2l.io.exr import read_exr
     from f2l.metrics.lighting import angle_deg, sun_direction
     from f2l.models.registry import load_model

@@ -128,7 +128,7 @@ def fit_probe_cmd(
     A probe that cannot be fitted (unreadable, malformed side file, black, implausible) is a row
     with status "error" and its reason; the others are fitted and the table is written. Exit code
     4 when some probes failed, 1 when every probe failed."""
-    from f2l.estimate.prior_build import write_fit_report
+    from f2l.prior.fit_report import write_fit_report
 
     m, records, skipped = _fit_probe_inputs(probes, model, grid, json_out, "fit-probe", out)
     summary = write_fit_report(records, m, out)
@@ -149,7 +149,7 @@ def sky_corpus(
     json_out: JsonOut = False,
 ) -> None:
     """Write the project's default sky corpus (CIE clear + overcast skies) for `f2l prior build`."""
-    from f2l.synth.skies import write_sky_corpus
+    from f2l.prior.corpus import write_sky_corpus
 
     step, close = _progress(n, "sky-corpus", not json_out)
     paths = write_sky_corpus(out, n, seed=seed, grid=_grid(grid), overcast_fraction=overcast_fraction, progress=step)
@@ -173,7 +173,7 @@ def build_prior_cmd(
     code 4 when some probes were skipped (the prior is written), 1 when none could be fitted."""
     from f2l.cli.common import EXIT_NOTHING_DONE
     from f2l.estimate.model_prior import save_prior
-    from f2l.estimate.prior_build import build_prior
+    from f2l.prior.build import build_prior
 
     m, records, _ = _fit_probe_inputs(probes, model, grid, json_out, "build-prior")
     bad = [r for r in records if r.status != "ok"]

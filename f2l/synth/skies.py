@@ -47,14 +47,10 @@ References
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from f2l.io.atomic import write_text_atomic
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 
 # CIE 2003 standard general sky, type 12 (CIE standard clear sky, low turbidity).
@@ -370,26 +366,3 @@ __all__ = [
     "vmf_normaliser",
     "sky_to_sun_ratio",
 ]
-
-
-def write_sky_corpus(out_dir: str | Path, n: int, seed: int = 0, grid=None,
-                     overcast_fraction: float = 0.25, progress: Callable | None = None) -> list[Path]:
-    """Write ``n`` random skies (:func:`random_sky`; the corpus :mod:`f2l.estimate.prior_build` describes) to ``out_dir``: ``sky_0000.exr``,
-    ``sky_0001.exr``, ... (index zero-padded to 4 digits), each with a ``.json`` side file holding
-    its kind, sun direction, turbidity, seed and index. Returns the EXR paths in order."""
-    from f2l.io.exr import write_exr
-    from f2l.lighting.grid import LatLongGrid
-
-    grid = grid or LatLongGrid(64, 128)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for i, child in enumerate(np.random.SeedSequence(int(seed)).spawn(int(n))):
-        probe, info = random_sky(grid, np.random.default_rng(child), overcast_fraction=overcast_fraction)
-        path = out / f"sky_{i:04d}.exr"
-        write_exr(path, probe)
-        write_text_atomic(path.with_suffix(".json"), json.dumps({**info, "seed": int(seed), "index": i}) + "\n")
-        paths.append(path)
-        if progress:
-            progress(1)
-    return paths
