@@ -60,8 +60,8 @@ bench-faces: $(STAMP)
 
 # Real framings, path-traced (f2l/render/framing.py): 30 half-body, 30 full-body and 40 group photos (2-5
 # people; ~200 faces) at 1280 px and 16 spp; detection recall by face width and framing (bench-detect
-# --rendered), then fit, estimate (sunsky) and the accuracy-against-face-size table (eval-framings;
-# docs/experiments/face_detection.md). ~60 min on 2 cores; resumable.
+# --rendered), then fit, estimate (sunsky) and the accuracy-against-face-size table (eval-framings,
+# f2l/evaluation/face_width.py; docs/experiments/face_detection.md). ~60 min on 2 cores; resumable.
 EVAL_FRAMINGS := build/eval_framings
 eval-framings: $(STAMP)
 	$(BIN)/f2l eval render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json

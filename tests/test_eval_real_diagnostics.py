@@ -5,8 +5,8 @@ import pytest
 
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.metrics import rendering_metrics
-from f2l.render.eval_report import diagnostics_table
-from f2l.render.evaluate import DIAGNOSTIC_NAMES, diagnostics
+from f2l.evaluation.eval_report import diagnostics_table
+from f2l.evaluation.evaluate import DIAGNOSTIC_NAMES, diagnostics
 
 GRID = LatLongGrid(32, 64)
 SUN = direction_from_angles(np.radians(40.0), 0.7)
@@ -72,7 +72,7 @@ def test_the_elevation_error_has_the_sign_of_the_estimates_lean():
 def test_the_truth_without_its_sun_disk_differs_from_the_truth_only_in_the_disk():
     from f2l.metrics import evaluate_pair
     from f2l.metrics.lighting import cap_mask
-    from f2l.render.evaluate import baseline_probes, sun_disk_radius_deg, without_sun_disk
+    from f2l.evaluation.evaluate import baseline_probes, sun_disk_radius_deg, without_sun_disk
 
     assert sun_disk_radius_deg(LatLongGrid(64, 128)) == pytest.approx(0.27 + 2.8125 / np.sqrt(2.0))
     truth = _sky_with_sun()
@@ -89,7 +89,7 @@ def test_the_truth_without_its_sun_disk_differs_from_the_truth_only_in_the_disk(
 
 
 def test_the_elevation_bias_table_splits_sky_sources_and_bands_and_leaves_out_baselines():
-    from f2l.render.eval_report import elevation_bias_table
+    from f2l.evaluation.eval_report import elevation_bias_table
 
     def row(method, source, elevation, error, angle):
         return {"method": method, "split": "report", "sky_kind": "clear", "source": source,
@@ -118,7 +118,7 @@ def _sky_with_lobe(sun, grid=GRID, kappa=3000.0, energy=40.0):
 
 
 def test_moving_a_sun_onto_itself_or_back_changes_little_and_keeps_its_energy():
-    from f2l.render.evaluate import sun_disk_radius_deg, sun_moved
+    from f2l.evaluation.evaluate import sun_disk_radius_deg, sun_moved
 
     grid = LatLongGrid(64, 128)
     other = direction_from_angles(np.radians(15.0), -2.0)
@@ -162,7 +162,7 @@ def test_the_sun_at_the_truth_removes_a_misplaced_suns_error_but_not_a_colour_ca
 
 
 def test_the_sun_direction_table_lists_estimates_on_clear_cases_only():
-    from f2l.render.eval_report import sun_direction_table
+    from f2l.evaluation.eval_report import sun_direction_table
 
     grid = LatLongGrid(64, 128)
     truth = _sky_with_lobe(SUN, grid)

@@ -1,4 +1,4 @@
-"""The skin's glossy highlight of a whole probe (f2l.render.highlight) and the ideal photo with gloss."""
+"""The skin's glossy highlight of a whole probe (f2l.evaluation.highlight) and the ideal photo with gloss."""
 
 from types import SimpleNamespace
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from f2l.lighting.grid import LatLongGrid
-from f2l.render.highlight import Gloss, glossy_highlight
-from f2l.render.photo_residual import IDEAL_PEAK, ideal_photo
+from f2l.evaluation.highlight import Gloss, glossy_highlight
+from f2l.evaluation.photo_residual import IDEAL_PEAK, ideal_photo
 from f2l.synth.render import make_synthetic_set
 
 GRID = LatLongGrid(64, 128)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from f2l.lighting.grid import LatLongGrid, rotate_y
-from f2l.render.eval_report import residual_table
-from f2l.render.photo_residual import IDEAL_PEAK, PhotoResidual, best_scale_l1, ideal_photo, photo_residual
+from f2l.evaluation.eval_report import residual_table
+from f2l.evaluation.photo_residual import IDEAL_PEAK, PhotoResidual, best_scale_l1, ideal_photo, photo_residual
 from f2l.synth.render import make_synthetic_set
 
 GRID = LatLongGrid(32, 64)

@@ -190,7 +190,7 @@ def test_canonical_head_ablation_renders(tmp_path):
 
 def test_baselines_are_exact_where_they_should_be():
     from f2l.lighting import sh
-    from f2l.render.evaluate import baseline_probes
+    from f2l.evaluation.evaluate import baseline_probes
 
     grid = LatLongGrid(64, 128)
     smooth = np.clip(1.0 + sh.reconstruct(np.eye(9)[2] * 0.8, grid), 0, None)  # 1 + y-dipole: in SH9
@@ -251,7 +251,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
         assert 0.0 < float(r["photo residual"]) < 1.0 and 0.0 < float(r["photo residual, truth"]) < 1.0
     assert all(r["photo residual"] == "nan" for r in rows if r["method"] == "uniform sky")
     # the sun moved onto the true one: scored for the estimates on clear cases, not for baselines
-    from f2l.render.evaluate import BASELINES
+    from f2l.evaluation.evaluate import BASELINES
 
     for r in rows:
         moved = float(r["MAE (s), sun at the truth"])
@@ -283,7 +283,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     for name, src in (("pbr", pbr), ("fitted", fitted), ("true_geometry", twins)):
         (eval_dir / name).symlink_to(src)
     share = run("eval", "geometry", eval_dir, "-m", "sh9", "--threads", "1")
-    from f2l.render.geometry_share import VARIANTS
+    from f2l.evaluation.geometry_share import VARIANTS
 
     assert all(f"| sh9 | {v} |" in share for v in VARIANTS)
     share_rows = json.loads((eval_dir / "geometry_share_rows.json").read_text())
@@ -296,8 +296,8 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert len(ideal) == 2 and all(0.0 <= r["MAE (s)"] < 1.0 for r in ideal)
     # the search's share: each clear face fitted from its own starts and from the true sun, on both
     # meshes; the own-start fit has the elevation profile off, so it is not the estimate scored above
-    from f2l.render.search_share import GEOMETRIES
-    from f2l.render.search_share import VARIANTS as SEARCH_VARIANTS
+    from f2l.evaluation.search_share import GEOMETRIES
+    from f2l.evaluation.search_share import VARIANTS as SEARCH_VARIANTS
 
     clear = {r["case"] for r in rows if r["sky_kind"] == "clear"}
     assert len(clear) == 2  # seed 0's first two cases (esplanade)
@@ -307,7 +307,7 @@ def test_eval_real_chain_on_two_rendered_faces(tmp_path):
     assert len(search_rows) == len(clear) * len(GEOMETRIES) * len(SEARCH_VARIANTS)
     for r in search_rows:
         assert r["case"] in clear and np.isfinite(r["objective"]) and 0.0 <= r["Sun-ang (°)"] <= 180.0
-    from f2l.render.search_share import search_table
+    from f2l.evaluation.search_share import search_table
 
     held = search_table(search_rows, held_out=True)
     assert "| all cases |" in held.splitlines()[0] and "tuning part" not in held

@@ -94,7 +94,7 @@ def test_accuracy_by_face_width_joins_truth_records_and_estimates(tmp_path):
     from f2l.face.bench_detect import ASTRONAUT_FACE
     from f2l.io.exr import write_exr
     from f2l.lighting.grid import LatLongGrid, direction_from_angles
-    from f2l.render.framing import accuracy_by_face_width
+    from f2l.evaluation.face_width import accuracy_by_face_width
     from f2l.synth.skies import clear_sky
 
     render = tmp_path / "render"

@@ -1,4 +1,4 @@
-"""eval-real's model-family oracles (f2l.render.truth_fit): a model fitted to the true probe itself,
+"""eval-real's model-family oracles (f2l.evaluation.truth_fit): a model fitted to the true probe itself,
 as fitted and with its sun moved 5°, cached per case; and the probe fit's guard against a run that
 diverges (f2l.estimate.probe_fit.minimise_restarted)."""
 
@@ -14,9 +14,9 @@ import torch
 from f2l.estimate.probe_fit import minimise_restarted
 from f2l.lighting.grid import LatLongGrid
 from f2l.metrics.lighting import angle_deg
-from f2l.render.eval_report import summary_table
-from f2l.render.evaluate import _truth_fit_rows
-from f2l.render.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, is_truth_fit, moved_direction, truth_fit
+from f2l.evaluation.eval_report import summary_table
+from f2l.evaluation.evaluate import _truth_fit_rows
+from f2l.evaluation.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, is_truth_fit, moved_direction, truth_fit
 from f2l_builtin_models.sunsky import SunSky
 
 GRID = LatLongGrid(32, 64)

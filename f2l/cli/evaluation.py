@@ -84,7 +84,7 @@ def twin_geometry_cmd(
     json_out: JsonOut = False,
 ) -> None:
     """Swap fitted face geometry for the renderer's true mesh (same pixels and observations)."""
-    from f2l.render.evaluate import write_true_geometry_twins
+    from f2l.evaluation.evaluate import write_true_geometry_twins
 
     summary = write_true_geometry_twins(fitted, render, out)
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
@@ -100,8 +100,8 @@ def eval_real_cmd(
     fit_truth: list[str] = typer.Option([], "--fit-truth", help="Also fit this model to each true probe, no face (its family's oracle; repeatable; cached in OUT/truth_fits)."),
 ) -> None:
     """Table 2 analog on rendered faces: every model and the baselines, split tune/report, breakdowns."""
-    from f2l.render.eval_report import write_report
-    from f2l.render.evaluate import evaluate_real
+    from f2l.evaluation.eval_report import write_report
+    from f2l.evaluation.evaluate import evaluate_real
 
     runs = {}
     for item in est:
@@ -133,8 +133,8 @@ def eval_real_geometry_cmd(
     threads: int = typer.Option(2, help="Threads."),
 ) -> None:
     """The face fit's share of the error split into normals and occluders, and what is left on an
-    ideal photo (f2l's own render of the truth on the true mesh; f2l.render.geometry_share)."""
-    from f2l.render.geometry_share import geometry_share, write_share
+    ideal photo (f2l's own render of the truth on the true mesh; f2l.evaluation.geometry_share)."""
+    from f2l.evaluation.geometry_share import geometry_share, write_share
 
     for sub in ("pbr", "fitted", "true_geometry"):
         if not (eval_dir / sub).is_dir():
@@ -154,8 +154,8 @@ def eval_real_search_cmd(
     threads: int = typer.Option(2, help="Threads."),
 ) -> None:
     """The search's share of the sun error or the objective's: each fit run again from a start at the
-    true sun, with and without the light prior (f2l.render.search_share)."""
-    from f2l.render.search_share import search_share, write_search
+    true sun, with and without the light prior (f2l.evaluation.search_share)."""
+    from f2l.evaluation.search_share import search_share, write_search
 
     for sub in ("pbr", "fitted", "true_geometry"):
         if not (eval_dir / sub).is_dir():
@@ -175,7 +175,7 @@ def eval_real_ablations_cmd(
 ) -> None:
     """How much of each model's error each ablation (no specular, direct light only, canonical head, no clipping) removes."""
     from f2l.io.atomic import write_text_atomic
-    from f2l.render.eval_report import ablation_table
+    from f2l.evaluation.eval_report import ablation_table
 
     if not (eval_dir / "eval_real_rows.csv").is_file():
         fail(f"{eval_dir}: no eval_real_rows.csv (run `make eval-real` first)")
@@ -192,7 +192,7 @@ def eval_framings_cmd(
     json_out: JsonOut = False,
 ) -> None:
     """Accuracy against the face's size: detection, fitting and the §5.1 metrics per band of true face width (40-80, 80-160, 160-320, > 320 px) on framed render sets."""
-    from f2l.render.framing import accuracy_by_face_width
+    from f2l.evaluation.face_width import accuracy_by_face_width
 
     missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
     if missing:

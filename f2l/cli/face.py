@@ -76,7 +76,7 @@ def compare_geometry_cmd(
     """Normal error (degrees) of fitted face geometry against the synthetic ground truth, on the mask."""
     import numpy as np
 
-    from f2l.render.compare_geometry import compare_geometry
+    from f2l.evaluation.compare_geometry import compare_geometry
 
     rows = compare_geometry(fitted, truth, twin_out=twin_out)
     if not rows:

@@ -4,7 +4,7 @@ Synthetic photos (painted features, EXIF focal length, :func:`f2l.synth.dataset.
 are rendered first (not timed), then each is fitted the way ``f2l fit-faces`` does it, timing
 photo decode, landmarks (detector + landmark model), geometry (pose fit, mesh, rasterisation,
 resampling, mask) and transport (visibility bits), after one warm-up face. The error columns
-come from the true-geometry twin (:mod:`f2l.render.compare_geometry`): median normal error on the mask and
+come from the true-geometry twin (:mod:`f2l.evaluation.compare_geometry`): median normal error on the mask and
 the head-pose errors. ``--photo`` adds real photos (no error columns).
 """
 
@@ -40,7 +40,7 @@ def _time_photo(path: Path, landmarker, options):
 def run_face_bench(faces: int = 4, image_size: int = 256, resolution: int = 104,
                    grid: LatLongGrid = LatLongGrid(), seed: int = 3, threads: int = 2,
                    photos: list[Path] | None = None) -> dict:
-    from f2l.render.compare_geometry import true_geometry_twin
+    from f2l.evaluation.compare_geometry import true_geometry_twin
     from f2l.face.fit import FitOptions, face_record
     from f2l.face.landmarker import FaceLandmarker
     from f2l.io.shards import iter_records

@@ -19,11 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.face import geometry
+from f2l.io.shards import ShardWriter, iter_records
+from f2l.io.side_files import load_gt_probe, write_side_probe
+from f2l.synth.render import posed_face_mesh
+from f2l.transport import compute_visibility
+
 
 def true_geometry_twin(fitted, truth, threads: int = 2):
     """(twin record, normal errors in degrees over the common masked pixels)."""
-    from f2l.synth.render import posed_face_mesh
-
     pose = truth.meta["pose_deg"]
     vertices, faces, vnormals = posed_face_mesh((pose["yaw"], pose["pitch"], pose["roll"]))
     return twin_from_mesh(fitted, vertices, faces, vnormals, float(truth.meta["focal_px"]),
@@ -34,9 +38,6 @@ def twin_from_mesh(fitted, vertices, faces, vnormals, focal_px: float, image_hw,
                    threads: int = 2):
     """The twin of ``fitted`` on a true mesh given in the camera frame (camera at the origin
     looking along −Z, cm), seen by a pinhole of ``focal_px`` over an ``image_hw`` photo."""
-    from f2l.face import geometry
-    from f2l.transport import compute_visibility
-
     crop = fitted.meta["crop"]
     k = crop["side"] / crop["resolution"]
     rc = fitted.pixel_rc.astype(np.float64)
@@ -64,9 +65,6 @@ def twin_from_mesh(fitted, vertices, faces, vnormals, focal_px: float, image_hw,
 def compare_geometry(fitted_shards, truth_shards, twin_out=None, threads: int = 2) -> list[dict]:
     """One row per fitted face with its normal-error distribution; with ``twin_out``, the
     true-geometry twins are written there as shards (same face ids, ground-truth probes copied)."""
-    from f2l.io.shards import ShardWriter, iter_records
-    from f2l.io.side_files import load_gt_probe, write_side_probe
-
     truth = {r.face_id: r for r in iter_records(truth_shards) if getattr(r, "ok", False)}
     fitted_dirs = [Path(p) for p in ([fitted_shards] if isinstance(fitted_shards, (str, Path))
                                      else fitted_shards)]

@@ -1,5 +1,5 @@
 """The markdown report of ``f2l eval real`` (``eval_real.md``, ``eval_real_rows.csv``) and the
-ablation table of ``f2l eval ablations``, from the rows :func:`f2l.render.evaluate.evaluate_real`
+ablation table of ``f2l eval ablations``, from the rows :func:`f2l.evaluation.evaluate.evaluate_real`
 scores.
 
 - :func:`summary_table`: the seven §5.1 metrics per method, median Sun-ang and s / face;
@@ -12,7 +12,7 @@ scores.
 - :func:`residual_table`: far-off suns that fit the photo as well as the truth;
 - :func:`ablation_table`: the error each ablation's re-render removes.
 
-Order in every table: the baselines, the models fitted to the truth (:mod:`f2l.render.truth_fit`),
+Order in every table: the baselines, the models fitted to the truth (:mod:`f2l.evaluation.truth_fit`),
 the fitted-mesh estimates, the labelled runs ("<model> (true geometry)"). The tables of the
 estimates' sun leave the first two out.
 """
@@ -25,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from f2l.render.evaluate import BASELINES, ELEVATION_BANDS_DEG, SPLITS
-from f2l.render.truth_fit import is_truth_fit
+from f2l.evaluation.evaluate import BASELINES, ELEVATION_BANDS_DEG, SPLITS
+from f2l.evaluation.truth_fit import is_truth_fit
+from f2l.io.atomic import atomic_path, write_text_atomic
+from f2l.metrics import METRIC_NAMES
 
 __all__ = ["ablation_table", "breakdown_table", "diagnostics_table", "elevation_bias_table", "residual_table",
            "summary_table", "sun_direction_table", "write_report"]
@@ -147,8 +149,6 @@ def _fmt(x: float, digits: int = 3) -> str:
 def summary_table(rows: list[dict], split: str | None = "report") -> str:
     """Markdown: one line per method, the seven metrics (mean; Sun metrics over clear cases),
     median Sun-ang, and mean run time per face."""
-    from f2l.metrics import METRIC_NAMES
-
     chosen = [r for r in rows if split is None or r["split"] == split]
     by = defaultdict(list)
     for r in chosen:
@@ -200,8 +200,6 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
     """``eval_real.md`` (reporting part, tuning part, breakdowns) and ``eval_real_rows.csv``."""
     import csv
 
-    from f2l.io.atomic import atomic_path, write_text_atomic
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     n = {s: len({r["case"] for r in rows if r["split"] == s}) for s in SPLITS}
@@ -241,8 +239,6 @@ def write_table(rows: list[dict], out_dir: Path, stem: str, heading: str, table:
     as ``OUT/<stem>_rows.json`` (atomic writes); returns the Markdown's path. For the diagnostics
     that re-estimate every face (``eval-real-geometry``, ``eval-real-search``)."""
     import json
-
-    from f2l.io.atomic import write_text_atomic
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """``f2l eval real``'s scoring: the paper's Table 2 rows on ``f2l eval render-faces`` cases, with baselines.
 
-This module scores one row per (method, case); :mod:`f2l.render.eval_report` writes the tables.
+This module scores one row per (method, case); :mod:`f2l.evaluation.eval_report` writes the tables.
 
 Inputs: the render folder (``meta/``, ``probes/``, ``truth/``) and one or more estimate folders
 written by ``f2l estimate`` (from ``f2l fit-faces`` records of the render's photos, or from their
@@ -20,7 +20,7 @@ Every row is scored by :func:`f2l.metrics.evaluate_pair` on the estimate's grid 
   an estimate that is exact everywhere except the sun's own disk. Its Full-dω MAE (l) is the floor
   for every estimate whose sun misses the disk; its Sun-ang is not scored (NaN);
 - ``<model> fitted to the truth`` and ``<model> fitted to the truth, sun 5° off`` (``fit_truth``):
-  the model fitted to the true probe itself, no face (:mod:`f2l.render.truth_fit`), as fitted and
+  the model fitted to the true probe itself, no face (:mod:`f2l.evaluation.truth_fit`), as fitted and
   with its sun moved 5°: what the model's family reaches under the probe fit's loss, and what a
   sun as close as a good face estimate costs it.
 
@@ -38,7 +38,7 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
 - ``sun share``: the estimate's energy share in the 13° cap around the true sun (the metric's sun
   region) minus the truth's (clear cases; < 0 = too little of the light there);
 - ``sun elevation error (°)``: the elevation of the estimate's sun (the direction Sun-ang scores)
-  minus the true sun's (clear cases; > 0 = too high). :func:`~f2l.render.eval_report.elevation_bias_table` gives its
+  minus the true sun's (clear cases; > 0 = too high). :func:`~f2l.evaluation.eval_report.elevation_bias_table` gives its
   median per sun elevation band and sky source: a mean Sun-ang says how far off the sun is, this
   says whether the estimates lean one way.
 - ``MAE (s), sun at the truth`` / ``MAE (s), sun at the truth, colour matched`` / ``Full-dω MAE
@@ -47,10 +47,10 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
   sun, above the median of the ring around it, put into the true sun's disk texels, per channel),
   and also colour matched as above. Against the row's MAE (s) and Full-dω MAE they split the error
   into the sun's direction, the light's colour and the rest (the sky's shape, the sun's share);
-  :func:`~f2l.render.eval_report.sun_direction_table` lists them.
+  :func:`~f2l.evaluation.eval_report.sun_direction_table` lists them.
 - ``photo residual`` / ``photo residual, truth``: how well the estimate's probe and the truth each
   explain the face's usable pixels through that record's own transport, skin albedo free per
-  channel (:mod:`f2l.render.photo_residual`; NaN for the baselines). :func:`~f2l.render.eval_report.residual_table`
+  channel (:mod:`f2l.evaluation.photo_residual`; NaN for the baselines). :func:`~f2l.evaluation.eval_report.residual_table`
   counts the far-off suns whose estimate fits the photo at least as well as the truth: errors
   that the data term, as f2l reads the photo, does not correct.
 """
@@ -64,7 +64,22 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.estimate.observation import EstimationError
+from f2l.estimate.probe_fit import ProbeFitError
+from f2l.evaluation.compare_geometry import twin_from_mesh
+from f2l.evaluation.photo_residual import PhotoResidual
+from f2l.evaluation.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, moved_direction, truth_fit
+from f2l.io.exr import read_exr
+from f2l.io.shards import ShardWriter, iter_records
+from f2l.io.side_files import load_gt_probe, write_side_probe
+from f2l.lighting import sh
 from f2l.lighting.grid import LatLongGrid
+from f2l.lighting.resample import resample
+from f2l.metrics import evaluate_pair, probe_metrics
+from f2l.metrics.lighting import cap_mask
+from f2l.metrics.lighting import sun_direction as probe_sun_direction
+from f2l.metrics.render_metrics import image_metrics
+from f2l.metrics.scene import evaluation_scene
 
 __all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "sun_moved", "evaluate_real", "diagnostics",
            "write_true_geometry_twins", "case_of_source", "load_cases", "split_of"]
@@ -96,8 +111,6 @@ def split_of(meta: dict) -> str:
 def baseline_probes(truth: np.ndarray, grid: LatLongGrid, sun_direction: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The baselines (module docstring) for one truth probe on ``grid``; ``sun_direction`` (unit,
     grid frame) is the true sun of a clear case, None for an overcast one."""
-    from f2l.lighting import sh
-
     uniform = np.ones(grid.shape + (3,))
     uniform[grid.sky_rows:] = 0.2
     out = {"uniform sky": uniform}
@@ -118,8 +131,6 @@ def without_sun_disk(truth: np.ndarray, grid: LatLongGrid, sun_direction: np.nda
     """``truth`` with its texels within :func:`sun_disk_radius_deg` of ``sun_direction`` set to the
     per-channel median of the ``SUN_RING_DEG`` wide ring around them (upper hemisphere); a copy of
     ``truth`` when ``sun_direction`` is None."""
-    from f2l.metrics.lighting import cap_mask
-
     out = np.array(truth, dtype=np.float64, copy=True)
     if sun_direction is None:
         return out
@@ -140,8 +151,6 @@ def sun_moved(probe: np.ndarray, grid: LatLongGrid, from_direction: np.ndarray, 
     are set to that median, and the sun's energy Σ (l − median) dΩ goes, spread evenly in radiance,
     into the texels within :func:`sun_disk_radius_deg` of ``to_direction``. The upper hemisphere's
     energy is kept exactly when both caps lie above the horizon."""
-    from f2l.metrics.lighting import cap_mask
-
     out = np.array(probe, dtype=np.float64, copy=True)
     source = cap_mask(grid, from_direction, radius_deg) & grid.upper_mask
     ring = cap_mask(grid, from_direction, radius_deg + SUN_RING_DEG) & ~source & grid.upper_mask
@@ -159,10 +168,6 @@ def sun_moved(probe: np.ndarray, grid: LatLongGrid, from_direction: np.ndarray, 
 def write_true_geometry_twins(fitted_dir: Path, render_dir: Path, out_dir: Path, threads: int = 2) -> dict:
     """Twin every fitted record of a rendered photo on the renderer's true mesh (f2l's camera at
     the origin: the render's camera sat at +Z ``camera_distance_cm``); ground-truth probes copied."""
-    from f2l.render.compare_geometry import twin_from_mesh
-    from f2l.io.shards import ShardWriter, iter_records
-    from f2l.io.side_files import load_gt_probe, write_side_probe
-
     cases = load_cases(render_dir)
     written, skipped = 0, 0
     with ShardWriter(out_dir, overwrite=True) as writer:
@@ -200,9 +205,6 @@ def _record_cases(shards: list[Path]) -> dict[str, str]:
 def _truth_on(render_dir: Path, case: str, grid: LatLongGrid, cache: dict) -> np.ndarray:
     key = (case, grid.shape)
     if key not in cache:
-        from f2l.io.exr import read_exr
-        from f2l.lighting.resample import resample
-
         cache[key] = resample(read_exr(Path(render_dir) / "probes" / f"{case}.exr").astype(np.float64),
                               grid.height, grid.width)
     return cache[key]
@@ -215,13 +217,10 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
 
     ``runs`` maps a label (e.g. "fitted", "true geometry") to an ``f2l estimate`` output folder;
     its rows are named "<model>" for the label "fitted" and "<model> (<label>)" otherwise.
-    ``fit_truth`` names models to fit to each true probe as well (:mod:`f2l.render.truth_fit`,
+    ``fit_truth`` names models to fit to each true probe as well (:mod:`f2l.evaluation.truth_fit`,
     cached in ``fit_cache``); a probe a model cannot fit is reported on stderr and left out.
     """
     import pyarrow.parquet as pq
-
-    from f2l.io.exr import read_exr
-    from f2l.metrics import evaluate_pair
 
     render_dir = Path(render_dir)
     cases = load_cases(render_dir)
@@ -239,7 +238,7 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
         truth = _truth_on(render_dir, case, grid, cache)
         true_sun = None if meta["sky"]["kind"] == "overcast" else np.asarray(meta["sky"]["sun_direction"])
         for name, probe in baseline_probes(truth, grid, true_sun).items():
-            metrics = _pair(evaluate_pair, probe, truth, grid, meta, None, sun_at_truth=False)
+            metrics = _pair(probe, truth, grid, meta, None, sun_at_truth=False)
             if name == "truth without its sun disk":  # its "sun" is the ring's median: not scored
                 metrics["Sun-ang (°)"] = metrics["sun elevation error (°)"] = math.nan
             metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
@@ -264,7 +263,7 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
                 truth = _truth_on(render_dir, case, g, cache)
                 probe = read_exr(est_dir / est["probe_path"]).astype(np.float64)
                 sun = est.get("sun_direction")
-                metrics = _pair(evaluate_pair, probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
+                metrics = _pair(probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
                 metrics.update(residuals.get((face_id, est["model"]), dict.fromkeys(RESIDUAL_NAMES, math.nan)))
                 method = est["model"] if label == "fitted" else f"{est['model']} ({label})"
                 rows.append(row(method, case, metrics, float(est["runtime_s"])))
@@ -281,12 +280,8 @@ def _elevation_deg(direction) -> float:
 
 def _truth_fit_rows(truth, model_name, grid, case, meta, fit_cache):
     """(method, metrics, run time) of ``model_name`` fitted to ``truth``, as fitted and with its
-    sun moved by MOVED_SUN_DEG (:mod:`f2l.render.truth_fit`); none when the fit fails."""
+    sun moved by MOVED_SUN_DEG (:mod:`f2l.evaluation.truth_fit`); none when the fit fails."""
     import sys
-
-    from f2l.estimate.probe_fit import ProbeFitError
-    from f2l.metrics import evaluate_pair
-    from f2l.render.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, moved_direction, truth_fit
 
     try:
         probe, sun, runtime_s = truth_fit(truth, model_name, grid, case, fit_cache)
@@ -299,7 +294,7 @@ def _truth_fit_rows(truth, model_name, grid, case, meta, fit_cache):
         if moved and sun is not None:
             s = moved_direction(sun, MOVED_SUN_DEG, case)
             p = sun_moved(probe, grid, sun, s)
-        metrics = _pair(evaluate_pair, p, truth, grid, meta, s)
+        metrics = _pair(p, truth, grid, meta, s)
         metrics.update(dict.fromkeys(RESIDUAL_NAMES, math.nan))
         out.append((name, metrics, runtime_s))
     return out
@@ -307,13 +302,8 @@ def _truth_fit_rows(truth, model_name, grid, case, meta, fit_cache):
 
 def _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) -> dict:
     """{(face_id, model): {"photo residual": r(estimate), "photo residual, truth": r(truth)}}
-    through each record's own transport (:mod:`f2l.render.photo_residual`); a record that cannot
+    through each record's own transport (:mod:`f2l.evaluation.photo_residual`); a record that cannot
     be read or has no usable pixels gets none (its rows keep NaN)."""
-    from f2l.estimate.observation import EstimationError
-    from f2l.io.exr import read_exr
-    from f2l.io.shards import iter_records
-    from f2l.render.photo_residual import PhotoResidual
-
     out = {}
     for rec in iter_records(shards):
         ests = by_face.get(getattr(rec, "face_id", None)) if getattr(rec, "ok", False) else None
@@ -332,7 +322,7 @@ def _photo_residuals(shards, by_face, est_dir, render_dir, record_case, cache) -
     return out
 
 
-def _pair(evaluate_pair, probe, truth, grid, meta, est_sun, sun_at_truth: bool = True):
+def _pair(probe, truth, grid, meta, est_sun, sun_at_truth: bool = True):
     sky = meta["sky"]
     overcast = sky["kind"] == "overcast"
     true_sun = None if overcast else np.asarray(sky["sun_direction"])
@@ -353,12 +343,6 @@ def diagnostics(probe: np.ndarray, truth: np.ndarray, grid: LatLongGrid, sun_dir
     it reports one, else the probe's (:func:`f2l.metrics.lighting.sun_direction`, as Sun-ang);
     ``sun_at_truth``: also score the estimate with its sun moved onto the true one (False for the
     baselines)."""
-    from f2l.metrics import probe_metrics
-    from f2l.metrics.lighting import cap_mask
-    from f2l.metrics.render_metrics import image_metrics
-    from f2l.metrics.scene import evaluation_scene
-    from f2l.metrics.lighting import sun_direction as probe_sun_direction
-
     weights = (grid.solid_angles * grid.upper_mask)[..., None]
     est_rgb = (np.asarray(probe, np.float64) * weights).sum((0, 1))
     true_rgb = (np.asarray(truth, np.float64) * weights).sum((0, 1))

@@ -17,10 +17,10 @@ true normals, no occluder                     true / front hemisphere of the tru
 true                                          true / true (the twin record itself)
 true, ideal photo                             true / true, and the photo replaced by f2l's own
                                               Lambertian render of the true probe through them
-                                              (:func:`f2l.render.photo_residual.ideal_photo`)
+                                              (:func:`f2l.evaluation.photo_residual.ideal_photo`)
 true, ideal photo + gloss                     the same plus the skin's glossy highlight of the
                                               whole probe, at the case's own roughness and
-                                              specular level (:mod:`f2l.render.highlight`)
+                                              specular level (:mod:`f2l.evaluation.highlight`)
 ============================================  ==========================================================
 
 The table gives per variant and part (tuning: even cases, reporting: odd) the mean Sun-ang over
@@ -40,6 +40,17 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.estimate import EstimationError, EstimatorConfig, FaceObservation, estimate
+from f2l.evaluation.eval_report import write_table
+from f2l.evaluation.evaluate import _truth_on, case_of_source, load_cases, split_of
+from f2l.evaluation.highlight import Gloss
+from f2l.evaluation.photo_residual import ideal_photo
+from f2l.io.shards import iter_records
+from f2l.metrics import evaluate_pair
+from f2l.models.registry import load_model
+from f2l.transport import compute_visibility
+from f2l.transport.visibility import front_mask
+
 VARIANTS = ("fitted", "fitted normals, no occluder", "fitted normals, true occlusion",
             "fitted mesh + true body below the chin", "true normals, no occluder", "true", "true, ideal photo",
             "true, ideal photo + gloss")
@@ -54,10 +65,6 @@ def variant_inputs(fitted, twin, render_dir: Path, meta: dict, truth_probe: np.n
                    threads: int = 2) -> dict:
     """{variant: (normals, visibility_bits, observed_rgb)} for one face; pixels are the twin's, and so
     are the colours except in the ideal photo (``truth_probe``: the true probe on the record's grid)."""
-    from f2l.render.photo_residual import ideal_photo
-    from f2l.transport import compute_visibility
-    from f2l.transport.visibility import front_mask
-
     grid = fitted.grid
     fn = np.asarray(fitted.normals, np.float64)
     tn = np.asarray(twin.normals, np.float64)
@@ -85,10 +92,8 @@ def variant_inputs(fitted, twin, render_dir: Path, meta: dict, truth_probe: np.n
 
 
 def case_gloss(meta: dict):
-    """The rendered skin's gloss (:class:`f2l.render.highlight.Gloss`) from a case's meta file:
+    """The rendered skin's gloss (:class:`f2l.evaluation.highlight.Gloss`) from a case's meta file:
     principled roughness, F0 = 0.08 × specular, and the head's skin albedo."""
-    from f2l.render.highlight import Gloss
-
     material = meta["material"]
     return Gloss(float(material["skin_roughness"]), 0.08 * float(material["skin_specular"]),
                  tuple(float(c) for c in meta["head"]["skin_albedo"]))
@@ -97,12 +102,6 @@ def case_gloss(meta: dict):
 def geometry_share(eval_dir: Path, models: list[str], threads: int = 2, progress=None) -> list[dict]:
     """One row per (model, variant, case) for the ``make eval-real`` folder ``eval_dir``
     (``pbr/``, ``fitted/``, ``true_geometry/``)."""
-    from f2l.estimate import EstimationError, EstimatorConfig, FaceObservation, estimate
-    from f2l.io.shards import iter_records
-    from f2l.metrics import evaluate_pair
-    from f2l.models.registry import load_model
-    from f2l.render.evaluate import _truth_on, case_of_source, load_cases, split_of
-
     eval_dir = Path(eval_dir)
     render_dir = eval_dir / "pbr"
     cases = load_cases(render_dir)
@@ -166,7 +165,5 @@ def share_table(rows: list[dict]) -> str:
 
 
 def write_share(rows: list[dict], out_dir: Path) -> Path:
-    from f2l.render.eval_report import write_table
-
     return write_table(rows, out_dir, "geometry_share", "The face fit's share: normals or occluders, and an ideal photo",
                        share_table(rows))

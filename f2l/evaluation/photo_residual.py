@@ -20,7 +20,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from f2l.estimate.observation import FaceObservation, usable_pixels
+from f2l.evaluation.highlight import glossy_highlight
 from f2l.lighting.grid import LatLongGrid
+from f2l.transport import Transport
 
 __all__ = ["best_scale_l1", "photo_residual", "ideal_photo", "PhotoResidual", "IDEAL_PEAK"]
 
@@ -63,12 +66,9 @@ def ideal_photo(record, probe: np.ndarray, threads: int = 2, gloss=None) -> np.n
     Estimating from it measures what the lighting model and its priors can do on that geometry
     when the photo holds nothing the model leaves out.
 
-    With ``gloss`` (:class:`f2l.render.highlight.Gloss`) the masked pixels also get the skin's
-    glossy highlight of the whole probe (:func:`f2l.render.highlight.glossy_highlight`, the
+    With ``gloss`` (:class:`f2l.evaluation.highlight.Gloss`) the masked pixels also get the skin's
+    glossy highlight of the whole probe (:func:`f2l.evaluation.highlight.glossy_highlight`, the
     record's 3-D points for the view), at the exposure ``median_c(k_c / albedo_c)``."""
-    from f2l.estimate.observation import FaceObservation, usable_pixels
-    from f2l.transport import Transport
-
     grid = LatLongGrid(record.grid_height, record.grid_width)
     p = np.asarray(probe, np.float64)
     if p.shape != grid.shape + (3,):
@@ -83,8 +83,6 @@ def ideal_photo(record, probe: np.ndarray, threads: int = 2, gloss=None) -> np.n
     photo = np.maximum(shading * k, 0.0)
     mask = np.asarray(record.mask, bool)
     if gloss is not None:
-        from f2l.render.highlight import glossy_highlight
-
         exposure = float(np.median(k / np.asarray(gloss.albedo_rgb, np.float64)))
         bits = np.asarray(record.visibility_bits)
         photo[mask] += exposure * glossy_highlight(np.asarray(record.normals)[mask], np.asarray(record.points)[mask],
@@ -99,9 +97,6 @@ class PhotoResidual:
     """One record's usable pixels and transport: ``residual(probe)`` for (H, W, 3) probes on its grid."""
 
     def __init__(self, record, threads: int = 2) -> None:
-        from f2l.estimate.observation import FaceObservation, usable_pixels
-        from f2l.transport import Transport
-
         self.grid = LatLongGrid(record.grid_height, record.grid_width)
         obs = FaceObservation(normals=record.normals, observed_rgb=record.observed_rgb, mask=record.mask,
                               visibility_bits=record.visibility_bits, grid=self.grid, face_id=record.face_id)

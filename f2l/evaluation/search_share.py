@@ -5,7 +5,7 @@ basin (the search's fault), or its objective (data term and priors) is lower som
 forward model's or the priors' fault, which no search fixes). For each clear case of a
 ``make eval-real`` folder, on the fitted mesh, on the true one (``f2l eval twin-geometry``) and on an
 ideal photo on the true mesh (f2l's own Lambertian render of the true probe,
-:func:`f2l.render.photo_residual.ideal_photo`, read without the skin's gloss: what is left there
+:func:`f2l.evaluation.photo_residual.ideal_photo`, read without the skin's gloss: what is left there
 is the lighting model's family and its priors), each model is fitted three ways, all without the
 elevation profile so that the objective compared is one fit's
 (``EstimatorConfig.sun_elevation_profile_deg = ()``):
@@ -33,6 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.estimate import EstimationError, EstimatorConfig, FaceObservation, estimate
+from f2l.evaluation.eval_report import write_table
+from f2l.evaluation.evaluate import _truth_on, case_of_source, load_cases, split_of
+from f2l.evaluation.photo_residual import ideal_photo
+from f2l.io.shards import iter_records
+from f2l.metrics import evaluate_pair
+from f2l.models.capabilities import CompactSun
+from f2l.models.registry import load_model
+
 VARIANTS = ("own starts", "started at the true sun", "started at the true sun, no light prior")
 GEOMETRIES = ("fitted", "true", "true, ideal photo")
 FAR_DEG = 15.0
@@ -41,8 +50,6 @@ LOWER_REL = 1e-3  # an objective counts as lower when below the other's by this 
 
 def _configs(threads: int, geometry: str) -> dict:
     """{variant: EstimatorConfig}; the ideal photo is Lambertian and is read so (``skin_gloss = 0``)."""
-    from f2l.estimate import EstimatorConfig
-
     base = EstimatorConfig(threads=threads, sun_prior_from_capture=False, sun_elevation_profile_deg=())
     if geometry == "true, ideal photo":
         base = dataclasses.replace(base, skin_gloss=0.0)
@@ -54,14 +61,6 @@ def search_share(eval_dir: Path, models: list[str], threads: int = 2, limit: int
                  progress=None) -> list[dict]:
     """One row per (model, geometry, variant, clear case) for the ``make eval-real`` folder
     ``eval_dir`` (``pbr/``, ``fitted/``, ``true_geometry/``); ``limit`` keeps the first cases."""
-    from f2l.estimate import EstimationError, FaceObservation, estimate
-    from f2l.io.shards import iter_records
-    from f2l.metrics import evaluate_pair
-    from f2l.models.capabilities import CompactSun
-    from f2l.models.registry import load_model
-    from f2l.render.evaluate import _truth_on, case_of_source, load_cases, split_of
-    from f2l.render.photo_residual import ideal_photo
-
     eval_dir = Path(eval_dir)
     render_dir = eval_dir / "pbr"
     cases = load_cases(render_dir)
@@ -150,7 +149,5 @@ def search_table(rows: list[dict], held_out: bool = False) -> str:
 
 
 def write_search(rows: list[dict], out_dir: Path, held_out: bool = False) -> Path:
-    from f2l.render.eval_report import write_table
-
     return write_table(rows, out_dir, "search_share", "The search's share of the sun error, or the objective's",
                        search_table(rows, held_out))

@@ -6,7 +6,7 @@ log-compressed, dω-weighted loss over the model's domain plus each channel's en
 "<model> fitted to the truth", is an oracle of the model family: an estimate from a face can come
 near it, not below it, unless the face tells the metric something the probe fit's loss does not
 weigh. A second row, "<model> fitted to the truth, sun 5° off", moves that fit's sun by
-``MOVED_SUN_DEG`` in a fixed direction per case (:func:`f2l.render.evaluate.sun_moved`): the same
+``MOVED_SUN_DEG`` in a fixed direction per case (:func:`f2l.evaluation.evaluate.sun_moved`): the same
 family with a sun as close as a good face estimate puts it.
 
 Fits are cached per case under ``cache_dir/<model>/<case>.exr`` with a JSON beside it (the fit's
@@ -23,7 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.estimate.probe_fit import fit_probe
+from f2l.io.atomic import write_text_atomic
+from f2l.io.exr import read_exr, write_exr
 from f2l.lighting.grid import LatLongGrid
+from f2l.models.registry import load_model
 
 __all__ = ["FIT_SUFFIX", "MOVED_SUFFIX", "MOVED_SUN_DEG", "is_truth_fit", "moved_direction", "truth_fit"]
 
@@ -53,11 +57,6 @@ def truth_fit(truth: np.ndarray, model_name: str, grid: LatLongGrid, case: str,
     """(probe (H, W, 3) float64, sun direction or None, fit time in s) of ``model_name`` fitted to
     ``truth`` on ``grid``; from ``cache_dir`` when a matching fit is there. Raises
     :class:`~f2l.estimate.probe_fit.ProbeFitError` when the probe cannot be fitted."""
-    from f2l.estimate.probe_fit import fit_probe
-    from f2l.io.atomic import write_text_atomic
-    from f2l.io.exr import read_exr, write_exr
-    from f2l.models.registry import load_model
-
     model = load_model(model_name, grid)
     key = {"model": model_name, "model_version": str(model.version), "grid": [grid.height, grid.width]}
     exr = json_path = None
