@@ -11,6 +11,8 @@ import rawpy
 from scipy import ndimage
 
 from f2l.capture.dng import synthetic_sky_scene, write_bracket, write_dng
+from f2l.io.photo.dng_tags import dng_layout
+from f2l.io.photo.tags import from_exifread
 from f2l.io.raw_meta import (
     BAYER_PATTERNS, RawError, bayer_mosaic, demosaic_bilinear, read_raw, read_raw_metadata, read_raw_mosaic,
 )  # fmt: skip
@@ -85,11 +87,14 @@ def test_dng_levels_come_from_tags_without_a_decode(tmp_path, monkeypatch):
     assert decoded.black_levels == (10.0, 20.0, 30.0, 40.0) and decoded.cfa_pattern == "GBRG"
     with open(path, "rb") as fh:
         tags = exifread.process_file(fh, details=False)
-    assert raw_meta._dng_layout(tags) == ("GBRG", (10.0, 20.0, 30.0, 40.0), 4095.0)
+    def layout(exifread_tags):
+        return dng_layout(from_exifread(exifread_tags).ifd0)
+
+    assert layout(tags) == ("GBRG", (10.0, 20.0, 30.0, 40.0), 4095.0)
     for extra in ("Image Tag 0xC61B", "Image Tag 0xC618", "Image Tag 0xC68D"):  # black deltas, linearisation, ActiveArea
-        assert raw_meta._dng_layout({**tags, extra: tags["Image BlackLevel"]}) is None
-    assert raw_meta._dng_layout({k: v for k, v in tags.items() if k != "Image Tag 0xC612"}) is None  # not a DNG
-    assert raw_meta._dng_layout({**tags, "Image SubfileType": tags["Image Orientation"]}) is None  # a thumbnail IFD
+        assert layout({**tags, extra: tags["Image BlackLevel"]}) is None
+    assert layout({k: v for k, v in tags.items() if k != "Image Tag 0xC612"}) is None  # not a DNG
+    assert layout({**tags, "Image SubfileType": tags["Image Orientation"]}) is None  # a thumbnail IFD
 
 
 def test_write_bracket_is_deterministic_and_follows_the_sensor_model(tmp_path):

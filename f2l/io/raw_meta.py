@@ -3,7 +3,8 @@
 Conventions:
 
 - EXIF (exposure, aperture, ISO, time, camera, lens, focal length, orientation, GPS, DNG colour
-  matrices) comes from ``exifread`` (:func:`exif_fields`, no pixel decode, about 1 ms); ``rawpy``
+  matrices and levels) comes from the one metadata reader, :mod:`f2l.io.photo.metadata` through
+  ``exifread`` (:func:`exif_fields`, no pixel decode, about 1 ms); ``rawpy``
   (LibRaw) supplies the sensor layout: visible size, black levels, white level, CFA pattern. LibRaw
   reports the layout only after decoding the pixels (a Canon black level is measured on masked
   pixels), so :func:`read_raw` returns metadata and mosaic from one decode. Where EXIF lacks
@@ -15,7 +16,8 @@ Conventions:
   -log2(e)``; ``(raw - black) / (white - black) / e`` is then independent of the exposure
   settings (see :mod:`f2l.capture.merge`).
 - ``timestamp`` is DateTimeOriginal (else DateTime) plus SubSecTimeOriginal; it is timezone-aware
-  only when the file records OffsetTimeOriginal, otherwise naive camera-local time.
+  only when the file records a usable OffsetTimeOriginal, otherwise naive camera-local time
+  (``PhotoMetadata.camera_time``). GPS fields need their hemisphere references (else ``None``).
 - ``xyz_to_camera`` is the DNG ColorMatrix for the D65 calibration (ColorMatrix2 when
   CalibrationIlluminant2 is D65, else ColorMatrix1), or LibRaw's built-in table for other formats:
   the 3x3 matrix taking CIE XYZ to camera RGB, row-major; ``None`` when unknown.
@@ -30,9 +32,13 @@ import logging
 import math
 import os
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
+from datetime import datetime
 
 import numpy as np
+
+from f2l.io.photo.dng_tags import BAYER_PATTERNS
+from f2l.io.photo.metadata import PhotoMetadata, metadata_from_tags
+from f2l.io.photo.tags import exifread_tags
 
 __all__ = [
     "RawError", "RawMeta", "RawFrame", "raw_frame", "exif_fields", "read_raw", "read_raw_metadata",
@@ -40,16 +46,12 @@ __all__ = [
     "XYZ_TO_REC709",
 ]  # fmt: skip
 
-BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
-"""2x2 Bayer layouts, colours of the top-left, top-right, bottom-left, bottom-right samples."""
 _COLOUR_INDEX = {"R": 0, "G": 1, "B": 2}
 
 XYZ_TO_REC709 = np.array(
     [[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560], [0.0556434, -0.2040259, 1.0572252]]
 )  # fmt: skip
 """CIE XYZ (D65) to linear Rec.709/sRGB primaries (IEC 61966-2-1)."""
-
-_D65 = 21  # EXIF LightSource / DNG CalibrationIlluminant code
 
 
 class RawError(IOError):
@@ -145,16 +147,6 @@ def _check_file(path: str) -> int:
     return size
 
 
-def _exif_tags(path: str) -> dict:
-    import exifread
-
-    try:
-        with open(path, "rb") as fh:
-            return exifread.process_file(fh, details=False, extract_thumbnail=False)
-    except Exception as exc:  # exifread raises assorted errors on malformed headers
-        raise RawError(f"{path}: malformed EXIF/TIFF header ({type(exc).__name__}: {exc})") from exc
-
-
 def _check_extents(path: str, tags: dict, size: int) -> None:
     """Raise if any IFD's strips or tiles extend past the end of the file."""
     for key in tags:
@@ -169,89 +161,6 @@ def _check_extents(path: str, tags: dict, size: int) -> None:
                 raise RawError(f"{path}: truncated: image data needs {max(ends)} bytes, file has {size}")
 
 
-def _values(tags: dict, *names: str):
-    for name in names:
-        tag = tags.get(name)
-        if tag is not None and getattr(tag, "values", None) not in (None, "", []):
-            return tag.values
-    return None
-
-
-def _number(tags: dict, *names: str) -> float | None:
-    values = _values(tags, *names)
-    if values is None or isinstance(values, str):
-        return None
-    try:
-        value = float(values[0])
-    except (TypeError, ValueError, ZeroDivisionError, IndexError):
-        return None
-    return value if math.isfinite(value) and value > 0 else None
-
-
-def _text(tags: dict, *names: str) -> str | None:
-    values = _values(tags, *names)
-    if values is None:
-        return None
-    text = (values if isinstance(values, str) else str(values)).strip().strip("\x00").strip()
-    return text or None
-
-
-def _timestamp(tags: dict) -> datetime | None:
-    text = _text(tags, "EXIF DateTimeOriginal", "Image DateTimeOriginal", "Image DateTime")
-    if text is None:
-        return None
-    try:
-        stamp = datetime.strptime(text[:19], "%Y:%m:%d %H:%M:%S")
-    except ValueError:
-        return None
-    subsec = _text(tags, "EXIF SubSecTimeOriginal")
-    if subsec and subsec.isdigit():
-        stamp += timedelta(seconds=int(subsec) / 10 ** len(subsec))
-    offset = _text(tags, "EXIF OffsetTimeOriginal", "EXIF Tag 0x9011")
-    if offset and len(offset) == 6 and offset[0] in "+-" and offset[3] == ":":
-        try:
-            minutes = int(offset[1:3]) * 60 + int(offset[4:6])
-        except ValueError:
-            return stamp
-        stamp = stamp.replace(tzinfo=timezone(timedelta(minutes=minutes if offset[0] == "+" else -minutes)))
-    return stamp
-
-
-def _gps(tags: dict) -> tuple[float | None, float | None, float | None]:
-    def angle(name: str, ref_name: str, negative: str) -> float | None:
-        values = _values(tags, name)
-        if values is None or len(values) != 3:
-            return None
-        try:
-            deg = float(values[0]) + float(values[1]) / 60.0 + float(values[2]) / 3600.0
-        except (TypeError, ValueError, ZeroDivisionError):
-            return None
-        ref = _text(tags, ref_name) or ""
-        return -deg if ref.upper().startswith(negative) else deg
-
-    altitude = _number(tags, "GPS GPSAltitude")
-    ref = _values(tags, "GPS GPSAltitudeRef")
-    if altitude is not None and ref is not None and not isinstance(ref, str) and int(ref[0]) == 1:
-        altitude = -altitude
-    latitude = angle("GPS GPSLatitude", "GPS GPSLatitudeRef", "S")
-    return latitude, angle("GPS GPSLongitude", "GPS GPSLongitudeRef", "W"), altitude
-
-
-def _dng_matrix(tags: dict) -> tuple[float, ...] | None:
-    illum2 = _values(tags, "Image CalibrationIlluminant2", "Image Tag 0xC65B")
-    names = [("Image ColorMatrix1", "Image Tag 0xC621")]
-    if illum2 is not None and not isinstance(illum2, str) and int(illum2[0]) == _D65:
-        names.insert(0, ("Image ColorMatrix2", "Image Tag 0xC622"))
-    for pair in names:
-        values = _values(tags, *pair)
-        if values is not None and not isinstance(values, str) and len(values) == 9:
-            try:
-                return tuple(float(v) for v in values)
-            except (TypeError, ValueError, ZeroDivisionError):
-                pass
-    return None
-
-
 def exif_fields(path: str | os.PathLike) -> dict:
     """The EXIF part of :class:`RawMeta` (no pixel decode, about a millisecond), as a dict.
 
@@ -261,32 +170,21 @@ def exif_fields(path: str | os.PathLike) -> dict:
     return _exif(os.fspath(path))[0]
 
 
-def _orientation(values) -> int:
-    """EXIF Orientation 1..8, or 1 where the tag is missing, malformed or out of range."""
-    try:
-        value = int(values[0]) if values and not isinstance(values, str) else 1
-    except (TypeError, ValueError, IndexError, OverflowError):
-        return 1
-    return value if 1 <= value <= 8 else 1
-
-
-def _exif(path: str) -> tuple[dict, dict]:
+def _exif(path: str) -> tuple[dict, PhotoMetadata]:
+    """The EXIF part of :class:`RawMeta` and the metadata it comes from (one read of the file)."""
     size = _check_file(path)
-    tags = _exif_tags(path)
-    _check_extents(path, tags, size)
-    orientation = _values(tags, "Image Orientation")
-    latitude, longitude, altitude = _gps(tags)
+    try:
+        tags, everything = exifread_tags(path)
+    except Exception as exc:  # exifread raises assorted errors on malformed headers
+        raise RawError(f"{path}: malformed EXIF/TIFF header ({type(exc).__name__}: {exc})") from exc
+    _check_extents(path, everything, size)
+    m = metadata_from_tags(tags)
     return {
-        "make": _text(tags, "Image Make") or "", "model": _text(tags, "Image Model") or "",
-        "exposure_s": _number(tags, "EXIF ExposureTime", "Image ExposureTime"),
-        "f_number": _number(tags, "EXIF FNumber", "Image FNumber"),
-        "iso": _number(tags, "EXIF ISOSpeedRatings", "Image ISOSpeedRatings", "EXIF PhotographicSensitivity"),
-        "timestamp": _timestamp(tags), "lens": _text(tags, "EXIF LensModel", "Image EXIFPhotoLensModel"),
-        "focal_length_mm": _number(tags, "EXIF FocalLength", "Image FocalLength"),
-        "orientation": _orientation(orientation),
-        "gps_latitude_deg": latitude, "gps_longitude_deg": longitude, "gps_altitude_m": altitude,
-        "xyz_to_camera": _dng_matrix(tags),
-    }, tags  # fmt: skip
+        "make": m.make or "", "model": m.model or "", "exposure_s": m.exposure_s, "f_number": m.f_number,
+        "iso": m.iso, "timestamp": m.camera_time, "lens": m.lens, "focal_length_mm": m.focal_length_mm,
+        "orientation": m.orientation, "gps_latitude_deg": m.latitude_deg, "gps_longitude_deg": m.longitude_deg,
+        "gps_altitude_m": m.altitude_m, "xyz_to_camera": m.xyz_to_camera,
+    }, m  # fmt: skip
 
 
 def read_raw(
@@ -337,15 +235,15 @@ def read_raw_metadata(path: str | os.PathLike, *, levels: bool = True) -> RawMet
 
     LibRaw reports black/white levels and the CFA only after decoding the pixels (a Canon black
     level is measured on masked pixels), so for most formats this costs a decode. A DNG whose
-    first IFD holds the CFA mosaic and states its layout completely (:func:`_dng_layout`: 2x2 Bayer
+    first IFD holds the CFA mosaic and states its layout completely (:func:`f2l.io.photo.dng_tags.dng_layout`: 2x2 Bayer
     CFAPattern, BlackLevel, WhiteLevel; no per-row/column black deltas, no linearisation table) is
     read from its tags alone, about a millisecond: LibRaw takes those very tags. ``levels=False``
     never decodes: CFA and levels come from DNG tags when the file has them, else ``None``;
     exposure, aperture and ISO then come from EXIF alone.
     """
     path = os.fspath(path)
-    fields, tags = _exif(path)
-    layout = _dng_layout(tags)
+    fields, m = _exif(path)
+    layout = m.dng_layout
     if levels and layout is None:
         return read_raw(path, exif=fields, mosaic=False)[0]
     raw = _open_rawpy(path, unpack=False)
@@ -357,74 +255,9 @@ def read_raw_metadata(path: str | os.PathLike, *, levels: bool = True) -> RawMet
         cfa, blacks, white = layout
         return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=white, cfa_pattern=cfa,
                        **fields)  # fmt: skip
-    cfa, blacks = _values(tags, "Image CFAPattern"), _values(tags, "Image BlackLevel")
-    try:
-        cfa = "".join("RGB"[int(c)] for c in cfa) if cfa and not isinstance(cfa, str) and len(cfa) == 4 else None
-        ok = blacks is not None and not isinstance(blacks, str) and len(blacks) in (1, 4)
-        blacks = tuple(float(b) for b in list(blacks) * (4 // len(blacks))) if ok else None
-    except (TypeError, ValueError, IndexError, ZeroDivisionError):
-        cfa, blacks = None, None
-    return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=_number(
-        tags, "Image WhiteLevel", "Image Tag 0xC61D"), cfa_pattern=cfa, **fields)  # fmt: skip
-
-
-_DNG_UNSUPPORTED = {  # DNG tags (exifread names or ids) whose presence LibRaw would apply beyond the basic levels
-    "LinearizationTable": ("Image LinearizationTable", "Image Tag 0xC618"),
-    "BlackLevelDeltaH": ("Image BlackLevelDeltaH", "Image Tag 0xC61B"),
-    "BlackLevelDeltaV": ("Image BlackLevelDeltaV", "Image Tag 0xC61C"),
-    "ActiveArea": ("Image ActiveArea", "Image Tag 0xC68D"),
-    "MaskedAreas": ("Image MaskedAreas", "Image Tag 0xC68E"),
-}
-
-
-def _ints(tags: dict, *names: str) -> list[int] | None:
-    values = _values(tags, *names)
-    if values is None or isinstance(values, str):
-        return None
-    try:
-        return [int(v) for v in values]
-    except (TypeError, ValueError):
-        return None
-
-
-def _dng_layout(tags: dict) -> tuple[str, tuple[float, ...], float] | None:
-    """(CFA, black levels per 2x2 position, white level) when a DNG's first IFD is its full-size CFA
-    mosaic and its tags state the layout exactly as LibRaw applies it; else ``None`` (decode).
-
-    Required: DNGVersion, SubfileType 0, PhotometricInterpretation CFA (32803), CFARepeatPatternDim
-    2x2 with an R/G/B Bayer CFAPattern (CFAPlaneColor 0, 1, 2 and CFALayout 1 if present),
-    BlackLevel of 1 value or 4 with BlackLevelRepeatDim 2x2, WhiteLevel. Refused: any of
-    :data:`_DNG_UNSUPPORTED` (a real camera DNG keeps its mosaic in a sub-IFD: decoded as before).
-    """
-    if _values(tags, "Image DNGVersion", "Image Tag 0xC612") is None:
-        return None
-    if (_ints(tags, "Image SubfileType", "Image NewSubfileType") or [0]) != [0]:
-        return None
-    if _ints(tags, "Image PhotometricInterpretation") != [32803]:
-        return None
-    if any(tags.get(name) is not None for names in _DNG_UNSUPPORTED.values() for name in names):
-        return None
-    if (_ints(tags, "Image CFAPlaneColor", "Image Tag 0xC616") or [0, 1, 2]) != [0, 1, 2]:
-        return None
-    if (_ints(tags, "Image CFALayout", "Image Tag 0xC617") or [1]) != [1]:
-        return None
-    cfa = _ints(tags, "Image CFAPattern")
-    if _ints(tags, "Image CFARepeatPatternDim") != [2, 2] or cfa is None or len(cfa) != 4 or max(cfa) > 2:
-        return None
-    pattern = "".join("RGB"[c] for c in cfa)
-    blacks = _values(tags, "Image BlackLevel", "Image Tag 0xC61A")
-    white = _number(tags, "Image WhiteLevel", "Image Tag 0xC61D")
-    if pattern not in BAYER_PATTERNS or blacks is None or isinstance(blacks, str) or len(blacks) not in (1, 4):
-        return None
-    if len(blacks) == 4 and _ints(tags, "Image BlackLevelRepeatDim", "Image Tag 0xC619") != [2, 2]:
-        return None
-    try:
-        levels = tuple(float(b) for b in list(blacks) * (4 // len(blacks)))
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
-    if white is None or not all(math.isfinite(b) and 0 <= b < white for b in levels):
-        return None
-    return pattern, levels, white
+    cfa, blacks, white = m.tag_levels
+    return RawMeta(path=path, width=width, height=height, black_levels=blacks, white_level=white, cfa_pattern=cfa,
+                   **fields)  # fmt: skip
 
 
 def read_raw_mosaic(path: str | os.PathLike) -> np.ndarray:

@@ -50,7 +50,9 @@ may write "Unexpected end of file" to stderr for a truncated RAW).
 
 Modules: this one decodes whole photos and is the entry point (:func:`load_photo`);
 :mod:`f2l.io.photo.core` holds :class:`Photo` and the code arithmetic, :mod:`f2l.io.photo.exif`
-the EXIF and focal length, :mod:`f2l.io.photo.stream` the streamed decoding of large photos.
+the ``Photo.exif`` fields and focal length, :mod:`f2l.io.photo.metadata` the one EXIF/RAW metadata
+reader behind them (also used by :mod:`f2l.io.raw_meta` and :mod:`f2l.io.capture`),
+:mod:`f2l.io.photo.stream` the streamed decoding of large photos.
 """
 
 from __future__ import annotations
@@ -69,9 +71,10 @@ from f2l.io.photo.core import (  # noqa: F401 - re-exported: the public API of p
     _preview_scale, _srgb8, srgb_to_linear,
 )
 from f2l.io.photo.exif import (  # noqa: F401
-    DEFAULT_FOCAL_35MM_MM, DIAGONAL_35MM_MM, _exif_size_scale, _exif_summary, _exifread_tags, _focal,
-    _orientation, _pillow_tags,
+    DEFAULT_FOCAL_35MM_MM, DIAGONAL_35MM_MM, _exif_size_scale, _exif_summary, _file_metadata, _focal,
+    _pillow_metadata,
 )
+from f2l.io.photo.metadata import PhotoMetadata
 from f2l.io.photo.stream import _CAN_STREAM_PILLOW, StreamedPhoto, _PillowSource, _TiffSource  # noqa: F401
 
 MIN_SIZE = 16
@@ -95,7 +98,7 @@ LIBRAW_FLIP_TO_ORIENTATION = {0: 1, 1: 2, 2: 4, 3: 3, 4: 5, 5: 8, 6: 6, 7: 7}
 # --- EXIF ---------------------------------------------------------------------------------------
 
 
-# --- decoders: each returns (kind, codes, masks, orientation, tags, sensor scale) -----------------
+# --- decoders: each returns (kind, codes, masks, orientation, metadata, sensor scale) -------------
 
 def _from_array(path, arr: np.ndarray, orientation: int):
     """(codes, masks) of an (H, W[, C]) uint8/uint16 (sRGB codes) or float (linear) array: integer
@@ -147,12 +150,12 @@ def _decode_pillow(path: str, max_pixels: int | None = None, stream: bool | None
             if kind in ("jpeg", "png") and _stream_wanted(stream, *im.size) and _CAN_STREAM_PILLOW:
                 # JPEG keeps its EXIF before the pixels; a PNG's is read by the streamed pass
                 return _Streamed(kind, _PillowSource(path, kind), (im.size[1], im.size[0]),
-                                 _pillow_tags(im) if kind == "jpeg" else None)
+                                 _pillow_metadata(im) if kind == "jpeg" else None)
             try:
                 im.load()  # decodes everything now, so truncation is detected here
             except (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error) as e:
                 raise PhotoError(path, f"truncated or corrupt {im.format} ({e})") from e
-            tags = _exifread_tags(path) if kind == "tiff" else _pillow_tags(im)
+            meta = _file_metadata(path) if kind == "tiff" else _pillow_metadata(im)
             arr = _pillow_array(path, im)
     except UnidentifiedImageError as e:
         raise PhotoError(path, "not a recognised image (unknown or unsupported format)") from e
@@ -160,8 +163,8 @@ def _decode_pillow(path: str, max_pixels: int | None = None, stream: bool | None
         raise PhotoError(path, f"image too large ({e})") from e
     except OSError as e:
         raise PhotoError(path, f"cannot read image ({e})") from e
-    orientation = _orientation(tags)
-    return (kind, *_from_array(path, arr, orientation), orientation, tags, _exif_size_scale(tags, arr.shape))
+    orientation = meta.orientation
+    return (kind, *_from_array(path, arr, orientation), orientation, meta, _exif_size_scale(meta, arr.shape))
 
 
 def _decode_tiff(path: str, max_pixels: int | None = None, stream: bool | None = False):
@@ -191,12 +194,12 @@ def _decode_tiff(path: str, max_pixels: int | None = None, stream: bool | None =
     if truncated:
         raise PhotoError(path, "truncated TIFF (image data runs past the end of the file)")
     if streamable:
-        return _Streamed("tiff", _TiffSource(path), (height, width), _exifread_tags(path))
+        return _Streamed("tiff", _TiffSource(path), (height, width), _file_metadata(path))
     if arr is None or arr.ndim not in (2, 3) or f"{arr.dtype.kind}{arr.itemsize}" not in ("u1", "u2", "f2", "f4", "f8"):
         return _decode_pillow(path, max_pixels)
-    tags = _exifread_tags(path)
-    orientation = _orientation(tags)
-    return ("tiff", *_from_array(path, arr, orientation), orientation, tags, _exif_size_scale(tags, arr.shape))
+    meta = _file_metadata(path)
+    orientation = meta.orientation
+    return ("tiff", *_from_array(path, arr, orientation), orientation, meta, _exif_size_scale(meta, arr.shape))
 
 
 def _raw_clipped(raw, half_size: bool) -> np.ndarray | None:
@@ -272,7 +275,7 @@ def _decode_raw(path: str, half_size: bool, max_pixels: int | None = None):
     code_scale = np.float32(_preview_scale(linear, RAW_PREVIEW_P99) / 65535)
     display = _srgb8(np.arange(65536, dtype=np.float32) * code_scale)[rgb]  # per-code LUT: fast
     black = peak <= math.floor(BLACK_LINEAR * 65535)
-    return "raw", linear, (display, clipped, black), orientation, _exifread_tags(path), 0.5 if half_size else 1.0
+    return "raw", linear, (display, clipped, black), orientation, _file_metadata(path), 0.5 if half_size else 1.0
 
 
 # --- entry point --------------------------------------------------------------------------------
@@ -283,12 +286,12 @@ def _sniff(head: bytes) -> str | None:
 
 
 class _Streamed(NamedTuple):
-    """A photo to stream: its source, stored (H, W) and tags (None: the reduced pass reads them)."""
+    """A photo to stream: its source, stored (H, W) and metadata (None: the reduced pass reads it)."""
 
     kind: str
     source: object
     stored_shape: tuple[int, int]
-    tags: dict | None
+    meta: PhotoMetadata | None
 
 
 def _stream_wanted(stream: bool | None, width: int, height: int) -> bool:
@@ -302,17 +305,17 @@ def _load_streamed(path: str, streamed: _Streamed, default_focal_35mm_mm: float,
     if h < MIN_SIZE or w < MIN_SIZE:
         raise PhotoError(path, f"image is {w}x{h} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed")
     try:
-        reduced, tags = streamed.source.reduce(DETECTION_MAX_SIDE)
+        reduced, meta = streamed.source.reduce(DETECTION_MAX_SIDE)
     except PhotoError:
         raise
     except Exception:  # noqa: BLE001 - a layout, codec or platform the streamed path lacks
         return None
-    tags = streamed.tags if streamed.tags is not None else (tags or {})
-    orientation = _orientation(tags)
+    meta = streamed.meta if streamed.meta is not None else (meta or PhotoMetadata())
+    orientation = meta.orientation
     photo = StreamedPhoto(path, streamed.kind, streamed.source, (h, w), orientation, reduced, whole)
-    exif = _exif_summary(tags)
+    exif = _exif_summary(meta)
     photo.exif = exif
-    focal_px, photo.focal_source = _focal(tags, exif, photo.shape, _exif_size_scale(tags, photo.shape),
+    focal_px, photo.focal_source = _focal(meta, exif, photo.shape, _exif_size_scale(meta, photo.shape),
                                           default_focal_35mm_mm)
     photo.focal_px = float(focal_px)
     return photo
@@ -383,13 +386,13 @@ def load_photo(path, *, raw_half_size: bool = True, default_focal_35mm_mm: float
             if photo is not None:
                 return photo
             decoded = decode(path, max_pixels, False)
-    kind, codes, masks, orientation, tags, sensor_scale = decoded
+    kind, codes, masks, orientation, meta, sensor_scale = decoded
     height, width = codes.shape[:2]
     if height < MIN_SIZE or width < MIN_SIZE:
         raise PhotoError(path, f"image is {width}x{height} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed")
     if codes.dtype.kind == "f" and not np.isfinite(codes).all():
         raise PhotoError(path, "decoded image contains NaN or infinite values")
-    exif = _exif_summary(tags)
-    focal_px, focal_source = _focal(tags, exif, codes.shape, sensor_scale, default_focal_35mm_mm)
+    exif = _exif_summary(meta)
+    focal_px, focal_source = _focal(meta, exif, codes.shape, sensor_scale, default_focal_35mm_mm)
     return Photo(path=path, kind=kind, codes=codes, masks=masks, focal_px=float(focal_px),
                  focal_source=focal_source, orientation=orientation, exif=exif)

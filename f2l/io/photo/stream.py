@@ -22,7 +22,8 @@ from functools import cached_property
 import numpy as np
 
 from f2l.io.photo.core import Photo, PhotoError, _BoxReducer, _box_factor, _code_planes, _no_pillow_bomb_guard, _orient
-from f2l.io.photo.exif import _pillow_tags
+from f2l.io.photo.exif import _pillow_metadata
+from f2l.io.photo.metadata import PhotoMetadata
 
 
 # JPEG/PNG input is handed to Pillow's decoder in pieces of this size; between pieces the rows it
@@ -121,7 +122,7 @@ def _pillow_rows_rgb(raw: np.ndarray, mode: str, width: int, lut) -> np.ndarray:
 
 
 def _pillow_scan(path: str, consume, stop: int | None = None, draft: int | None = None,
-                 want_tags: bool = False) -> dict | None:
+                 want_tags: bool = False) -> PhotoMetadata | None:
     """Decode a JPEG or PNG with Pillow's own decoder, row block by row block.
 
     The decoder writes into an anonymous private mapping of the image's size, fed
@@ -133,7 +134,7 @@ def _pillow_scan(path: str, consume, stop: int | None = None, draft: int | None 
     pseudo-random 4-byte guard at the end of each row first (data equal to the guard only delays
     a row). Stops after row ``stop``. ``draft`` (JPEG): decode at 1/draft scale (libjpeg's DCT
     scaling). ``consume.begin(width, height, scale)`` is called first when it exists. Returns the
-    Pillow tags (``want_tags``: read after decoding; a PNG may keep its EXIF after the pixels)."""
+    metadata (``want_tags``: read after decoding; a PNG may keep its EXIF after the pixels)."""
     from PIL import Image
 
     with _no_pillow_bomb_guard(), Image.open(path) as im:
@@ -213,7 +214,7 @@ def _pillow_scan(path: str, consume, stop: int | None = None, draft: int | None 
             except _STREAM_DECODE_ERRORS as e:
                 raise PhotoError(path, f"truncated or corrupt {im.format} ({e})") from e
             if want_tags:
-                tags = _pillow_tags(im)
+                tags = _pillow_metadata(im)
         finally:
             del raw, tail
             im.close()  # releases Pillow's view of the mapping
@@ -228,9 +229,9 @@ class _PillowSource:
     def __init__(self, path: str, kind: str):
         self.path, self.kind = path, kind
 
-    def reduce(self, max_side: int) -> tuple[_Reduced, dict | None]:
+    def reduce(self, max_side: int) -> tuple[_Reduced, PhotoMetadata | None]:
         """The reduced copy (JPEG: libjpeg's DCT scaling by the power of two <= 8 that brings the
-        long side nearest to ``max_side``, then a box; PNG: a box over every row) and the tags."""
+        long side nearest to ``max_side``, then a box; PNG: a box over every row) and the metadata."""
         draft = None
         if self.kind == "jpeg":
             from PIL import Image
@@ -253,7 +254,7 @@ class _TiffSource:
     def __init__(self, path: str):
         self.path = path
 
-    def reduce(self, max_side: int) -> tuple[_Reduced, dict | None]:
+    def reduce(self, max_side: int) -> tuple[_Reduced, PhotoMetadata | None]:
         import tifffile
 
         with tifffile.TiffFile(self.path) as tf:
