@@ -131,7 +131,7 @@ def _capture_time(meta: PhotoMetadata) -> tuple[datetime, str, list[str]]:
 
 def _capture_from_metadata(meta: PhotoMetadata, name) -> tuple[CaptureInfo | None, str]:
     if meta.latitude_deg is None:
-        return None, f"{name}: {meta.problems['position']}"
+        return None, f"{name}: {meta.problems.get('position', 'no GPS position in EXIF')}"
     try:
         utc, source, notes = _capture_time(meta)
     except _Unusable as exc:

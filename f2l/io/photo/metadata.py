@@ -13,7 +13,8 @@ Conventions:
   counts as their quotient. Texts (make, model, lens, ``datetime_original``) are stripped of NULs
   and white space, ``None`` when empty. ``orientation`` is EXIF 1..8, else 1.
 - Times and places are parsed strictly, each with the reason it is unusable in ``problems``
-  (keys ``"position"``, ``"altitude"``, ``"gps_time"``, ``"datetime_original"``, ``"offset"``):
+  (keys ``"position"`` (also when there is none), ``"altitude"``, ``"gps_time"``,
+  ``"datetime_original"``, ``"offset"``):
   ``local_time`` is DateTimeOriginal ('YYYY:MM:DD HH:MM:SS', ``-`` and ``T`` also accepted) plus
   SubSecTimeOriginal (to the microsecond, truncated), naive camera-clock time; ``utc_offset``
   its OffsetTimeOriginal ('+HH:MM', '+HHMM' or 'Z', hours <= 14); ``gps_utc`` GPSDateStamp +
