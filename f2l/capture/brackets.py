@@ -6,12 +6,13 @@ and framing."""
 
 from __future__ import annotations
 
-import json
 import math
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+
+from f2l.capture.view_spec import ViewSpec
 
 
 def _capture_time(row: dict) -> float:
@@ -54,11 +55,8 @@ frames (capture-time difference less the earlier frame's exposure time) starts a
 
 
 def _view_key(r: dict) -> str:
-    """What places a frame: its session TOML view (orientation, lens), less role and probe azimuth."""
-    view = json.loads(r["view_json"] or "{}")
-    for k in ("role", "probe_azimuth_deg"):
-        view.pop(k, None)
-    return json.dumps(view, sort_keys=True)
+    """What places a frame: its view spec's orientation and lens (:meth:`ViewSpec.placement_key`)."""
+    return ViewSpec.from_json(r["view_json"]).placement_key()
 
 
 def _stop(r: dict) -> float | None:
@@ -92,12 +90,12 @@ def bracket_summary(rows: list[dict]) -> list[dict]:
             by.setdefault(r["bracket_id"], []).append(r)
     out = []
     for bid, frames in sorted(by.items()):
-        view = json.loads(frames[0]["view_json"] or "{}")
+        pose = ViewSpec.from_json(frames[0]["view_json"]).pose
         evs = [r["ev100"] for r in frames if r.get("ev100") is not None]
         out.append({"bracket_id": bid, "session": frames[0]["session"], "frames": len(frames),
                     "ev100_min": min(evs) if evs else None, "ev100_max": max(evs) if evs else None,
                     "camera": frames[0]["camera"],
-                    "view": {k: view[k] for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in view}})
+                    "view": pose})
     return out
 
 

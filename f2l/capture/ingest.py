@@ -27,7 +27,8 @@ What a row says about a file, and how it is decided:
   In a bracket folder, a run of one frame is ``skipped`` (nothing to merge) and a run that mixes
   cameras or frame sizes is an ``error`` naming both; the rest of the folder is unaffected.
 * **session TOML** (``session.toml`` in the session folder, schema ``session``): lens
-  (:mod:`f2l.capture.lens`), fall-off, per-shot yaw/pitch/roll, probe azimuth; stored per row in
+  (:mod:`f2l.capture.lens`), fall-off, per-shot yaw/pitch/roll and role, probe azimuth; parsed
+  and validated once per file into a :class:`~f2l.capture.view_spec.ViewSpec`, stored per row in
   ``view_json`` (a flat-field file as a path relative to the capture root, with its SHA-256). An
   invalid TOML is reported, with its file and key, in the summary (``session_problems``, printed
   by the CLI) and in ``session_problem`` of every row of its session, which is then ingested
@@ -37,7 +38,7 @@ What a row says about a file, and how it is decided:
 * **hostile input** (each is reported, naming the file and the key, and the rest of the tree is
   ingested):
 
-  - a sky frame whose lens cannot place its view (:func:`f2l.capture.lens.lens_from_view`:
+  - a sky frame whose lens cannot place its view (:func:`f2l.capture.lens.lens_of`:
     missing, inconsistent or implausible values, e.g. a focal length of 1e308 px or a principal
     point far outside the frame) is an ``error`` row, checked on the frame's own size;
   - a file named in the session TOML (a flat field's ``file``) must stay inside the session

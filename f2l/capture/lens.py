@@ -1,5 +1,7 @@
 """Lens descriptions a photographer can write (``session.toml`` ``[lens]``, overridable per
-``[[shots]]``) → a placed :class:`~f2l.capture.cameras.ViewCamera` and a fall-off gain.
+``[[shots]]``; parsed at ingest into a :class:`~f2l.capture.view_spec.LensSpec`, which checks
+keys, types and finite numbers) → a placed :class:`~f2l.capture.cameras.ViewCamera` and a
+fall-off gain.
 
 Every pixel quantity is in the **full frame** (the RAW's visible size, COLMAP pixel coordinates:
 x right, y down, pixel (i, j) spans [j, j+1] × [i, i+1]); :meth:`Lens.view_camera` maps them to a
@@ -56,14 +58,13 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 import numpy as np
 
 from f2l.capture.cameras import ViewCamera, equisolid_coefficients
+from f2l.capture.view_spec import PROJECTIONS, RADIUS_NAMES, LensSpec, ViewSpecError
 
-__all__ = ["Lens", "Falloff", "lens_from_view", "PROJECTIONS", "FISHEYES", "LensError", "flat_field_path",
-           "FOCAL_PX_PER_LONG_SIDE", "FOCAL_LENGTH_MM_RANGE", "SENSOR_WIDTH_MM_RANGE", "PRINCIPAL_POINT_MARGIN",
-           "IMAGE_CIRCLE_PER_LONG_SIDE", "FALLOFF_COEFFICIENT_MAX", "COLMAP_EXTRA_PARAM_MAX"]
+__all__ = ["Lens", "Falloff", "lens_from_view", "lens_of", "PROJECTIONS", "FISHEYES", "LensError",
+           "flat_field_path", "FOCAL_PX_PER_LONG_SIDE", "FOCAL_LENGTH_MM_RANGE", "SENSOR_WIDTH_MM_RANGE",
+           "PRINCIPAL_POINT_MARGIN", "IMAGE_CIRCLE_PER_LONG_SIDE", "FALLOFF_COEFFICIENT_MAX", "COLMAP_EXTRA_PARAM_MAX"]
 
-PROJECTIONS = ("equidistant", "equisolid", "rectilinear")
 FISHEYES = ("equidistant", "equisolid")
-RADIUS_NAMES = ("image_circle", "half_diagonal", "half_width", "half_height")
 
 FOCAL_PX_PER_LONG_SIDE = (1e-2, 1e2)
 """Plausible focal length in px as a multiple of the frame's long side (px per px): 0.01 × is a
@@ -86,9 +87,10 @@ COLMAP_EXTRA_PARAM_MAX = 1e3
 (distortion terms, dimensionless; real ones are within ±10)."""
 
 
-class LensError(ValueError):
-    """A lens description that cannot place the view; the message names the key, ``key`` holds
-    it (the lens key, e.g. ``focal_length_px`` or ``falloff``; "" when none applies).
+class LensError(ViewSpecError):
+    """A lens description that cannot place the view (for a frame of its size); the message
+    names the key, ``key`` holds it (the lens key, e.g. ``focal_length_px`` or ``falloff``; ""
+    when none applies).
 
     >>> try:
     ...     lens_from_view({"projection": "rectilinear"}, 400, 300)
@@ -96,10 +98,6 @@ class LensError(ValueError):
     ...     print(error.key)
     focal_length_px
     """
-
-    def __init__(self, message: str, key: str = "") -> None:
-        super().__init__(message)
-        self.key = key
 
 
 @dataclass(frozen=True)
@@ -368,9 +366,22 @@ def _falloff(view: dict, circle_px: float | None, width: int, height: int) -> Fa
     return Falloff("polynomial", coeffs, radius_px)
 
 
+def lens_of(spec: LensSpec, width: int, height: int, exif_focal_mm: float | None = None) -> Lens:
+    """The :class:`Lens` a view spec's lens (:class:`~f2l.capture.view_spec.LensSpec`, decoded
+    from a row's ``view_json``) describes for a full frame of ``width`` × ``height`` px
+    (:func:`lens_from_view`).
+
+    >>> lens = lens_of(LensSpec(projection="rectilinear", fov_deg=90), 400, 300)
+    >>> lens.model, lens.principal_point
+    ('PINHOLE', (200.0, 150.0))
+    """
+    return lens_from_view(spec.as_dict(), width, height, exif_focal_mm)
+
+
 def lens_from_view(view: dict, width: int, height: int, exif_focal_mm: float | None = None) -> Lens:
-    """The :class:`Lens` a row's ``view_json`` describes for a full frame of ``width`` × ``height``
-    px (LensError naming the missing, inconsistent or implausible key: module doc).
+    """The :class:`Lens` a lens description (the lens keys of a session TOML view, as a dict)
+    describes for a full frame of ``width`` × ``height`` px (LensError naming the missing,
+    inconsistent or implausible key: module doc).
 
     An 8 mm equisolid fisheye on a 36 mm-wide, 600 px frame (f = 133.3 px) with a 150 px image
     circle sees 2 asin(150 / (2 f)) = 68.5° off its axis:

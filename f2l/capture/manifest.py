@@ -5,7 +5,6 @@ names that are not UTF-8) is reported."""
 
 from __future__ import annotations
 
-import json
 import os
 from collections import Counter
 from pathlib import Path
@@ -13,6 +12,7 @@ from pathlib import Path
 from f2l.capture import brackets as br
 from f2l.capture import ingest as ing
 from f2l.capture import session_toml as st
+from f2l.capture.view_spec import ViewSpec, ViewSpecError
 from f2l.io.hashing import file_sha256
 
 TABLE_NAME = "captures.parquet"
@@ -44,7 +44,8 @@ def _new_row(rel: str, kind: str, stat: os.stat_result | None) -> dict:
     return {"path": rel, "sha256": "", "size_bytes": int(stat.st_size) if stat else 0,
             "mtime_ns": int(stat.st_mtime_ns) if stat else 0, "kind": kind, "session": "", "role": "other",
             "role_source": "none", "bracket_id": None, "status": "ok", "message": "",
-            "view_json": "{}", "session_problem": "", "ingest_version": ing.INGEST_VERSION, **ing._empty_meta()}
+            "view_json": ViewSpec().to_json(), "session_problem": "", "ingest_version": ing.INGEST_VERSION,
+            **ing._empty_meta()}
 
 
 def _read_row(path: Path, rel: str, kind: str, stat: os.stat_result) -> dict:
@@ -213,32 +214,37 @@ def _session_files(config: dict, folder: Path, root: Path, allow_outside: bool) 
     return out
 
 
-def _with_files(view: dict, config: dict, shot: int | None, files: dict) -> tuple[dict, str]:
-    """(view, problem): a flat-field file named in the view as recorded by :func:`_session_files`
-    (a path relative to the capture root plus its SHA-256, so a changed file changes the merge's
-    cache key); problem "<key>: why" when that file was refused or cannot be used."""
-    falloff = view.get("falloff")
-    if not (isinstance(falloff, dict) and falloff.get("file")):
-        return view, ""
+def _view_spec(view: dict, config: dict, shot: int | None, files: dict) -> tuple[ViewSpec, str]:
+    """(spec, problem): the view the session TOML gives one file, parsed and validated once
+    (:class:`~f2l.capture.view_spec.ViewSpec`), its flat-field file as recorded by
+    :func:`_session_files` (a path relative to the capture root plus its SHA-256, so a changed
+    file changes the merge's cache key). problem "<key>: why" when the view is invalid (then the
+    spec is empty) or its flat-field file was refused or cannot be used."""
+    try:
+        spec = ViewSpec.from_dict(view)
+    except ViewSpecError as exc:
+        return ViewSpec(), f"{st.key_where(config, shot, exc.key)}: {exc} (the lens cannot place this view)"
+    falloff = spec.lens.falloff
+    if falloff is None or not falloff.file:
+        return spec, ""
     where = st.key_where(config, shot, "falloff") + "/file"
     info = files.get(where)
     if not isinstance(info, dict):
-        return view, f"{where}: {info or 'not resolved'}"
-    recorded = {k: v for k, v in info.items() if k != "real"}
-    return dict(view, falloff=dict(falloff, **recorded)), ""
+        return spec, f"{where}: {info or 'not resolved'}"
+    return spec.with_flat_field(info["file"], info["sha256"], info.get("allow_outside", False)), ""
 
 
-def _lens_problem(view: dict, row: dict, config: dict, shot: int | None) -> str:
-    """"<key>: why" when the view's lens cannot place a frame of the row's size (checked only
+def _lens_problem(spec: ViewSpec, row: dict, config: dict, shot: int | None) -> str:
+    """"<key>: why" when the spec's lens cannot place a frame of the row's size (checked only
     for a frame of known size whose view describes a lens), else ""."""
-    from f2l.capture.lens import LensError, lens_from_view
+    from f2l.capture.lens import LensError, lens_of
 
-    if row["kind"] not in ("raw", "image") or not ("projection" in view or "colmap_model" in view):
+    if row["kind"] not in ("raw", "image") or not spec.lens.describes_geometry:
         return ""
     if not (row.get("width") and row.get("height")):
         return ""
     try:
-        lens_from_view(view, int(row["width"]), int(row["height"]), row.get("focal_length_mm"))
+        lens_of(spec.lens, int(row["width"]), int(row["height"]), row.get("focal_length_mm"))
     except LensError as exc:
         return f"{st.key_where(config, shot, exc.key)}: {exc} (the lens cannot place this view)"
     return ""
@@ -292,18 +298,18 @@ def _derive(root: Path, rows: list[dict], session_gap_min: float, bracket_gap_s:
         for r in members:
             rel_in = rels[id(r)]
             shot = st.matched_shot(config, rel_in)
-            view, view_problem = _with_files(st.view_for(config, rel_in), config, shot, files)
+            spec, view_problem = _view_spec(st.view_for(config, rel_in), config, shot, files)
             where = st.key_where(config, shot, "falloff") + "/file"
-            if not view_problem and where in unreadable_flat and "file" in view.get("falloff", {}):
+            if not view_problem and where in unreadable_flat and spec.lens.falloff and spec.lens.falloff.file:
                 view_problem = f"{where}: the flat-field file is unreadable ({unreadable_flat[where]})"
-            r["_view_problem"] = view_problem or _lens_problem(view, r, config, shot)
-            r["view_json"] = json.dumps(view, sort_keys=True)
+            r["_view_problem"] = view_problem or _lens_problem(spec, r, config, shot)
+            r["view_json"] = spec.to_json()
             r["session_problem"] = problem
             role, source = ing._folder_role(Path(r["path"])), "folder"
             if id(r) in flat_rows:  # a flat field is calibration data, never a probe or a frame
                 role, source = "other", "toml"
-            if role is None and "role" in view:
-                role, source = view["role"], "toml"
+            if role is None and spec.role is not None:
+                role, source = spec.role, "toml"
             if role is None and r["kind"] == "hdr":
                 role, source = "probe", "detected"
             if role is None:

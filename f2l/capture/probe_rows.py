@@ -1,6 +1,6 @@
 """The rows of ``probes.parquet`` and what every probe stage shares: a view's camera from its
-session TOML view, whether its pose is usable, mask PNGs, and rows checked (finite numbers, the
-``probes`` schema) before the table is built. See :mod:`f2l.capture.probes` for the table."""
+view spec, mask PNGs, and rows checked (finite numbers, the ``probes`` schema) before the table
+is built. See :mod:`f2l.capture.probes` for the table."""
 
 from __future__ import annotations
 
@@ -9,44 +9,25 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.capture.view_spec import ViewSpec
+
 
 COLOUR_SPACES = ("rec709", "camera")
 
 
-POSE_KEYS = ("yaw_deg", "pitch_deg", "roll_deg")
-
-
-LENS_KEYS = ("projection", "colmap_model")
-
-
-def pose_problem(view: dict) -> str | None:
-    """Why a row's ``view_json`` orientation cannot place a view (an angle that is not a finite
-    number), or None."""
-    for key in POSE_KEYS:
-        value = view.get(key, 0.0)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"{key} = {value!r} is not a number"
-        if not math.isfinite(float(value)):
-            return f"{key} = {value} is not a finite angle"
-    return None
-
-
-def camera_for(view: dict, width: int, height: int, *, frame: tuple | None = None,
+def camera_for(spec: ViewSpec, width: int, height: int, *, frame: tuple | None = None,
                exif_focal_mm: float | None = None):
-    """The :class:`~f2l.capture.cameras.ViewCamera` a row's ``view_json`` describes for a view of
-    ``width`` x ``height`` px (:mod:`f2l.capture.lens`; ValueError naming what is missing).
+    """The :class:`~f2l.capture.cameras.ViewCamera` a row's view spec (its lens and orientation)
+    describes for a view of ``width`` x ``height`` px (:func:`f2l.capture.lens.lens_of`;
+    ValueError naming what is missing).
 
     ``frame``: (full-frame width, height, k, crop_x, crop_y) when the view was box-averaged by k
     after a centred crop (:func:`downsample_view`); None: the view is the full frame."""
-    from f2l.capture.lens import lens_from_view
+    from f2l.capture.lens import lens_of
 
     fw, fh, k, cx, cy = frame if frame is not None else (width, height, 1, 0, 0)
-    problem = pose_problem(view)
-    if problem:
-        raise ValueError(problem)
-    pose = {key: float(view.get(key, 0.0)) for key in POSE_KEYS}
-    return lens_from_view(view, int(fw), int(fh), exif_focal_mm).view_camera(width, height, int(k), int(cx), int(cy),
-                                                                             **pose)
+    return lens_of(spec.lens, int(fw), int(fh), exif_focal_mm).view_camera(width, height, int(k), int(cx), int(cy),
+                                                                          **spec.pose_deg())
 
 
 def _write_mask_png(path: Path, mask: np.ndarray) -> None:

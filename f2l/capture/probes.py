@@ -11,9 +11,10 @@ For each ``bracket_id`` of ``WORK/captures.parquet`` (frames with status ok), in
    EV100 0; ``chromaticities`` and ``f2l_view_from_frame`` = "W H k crop_x crop_y" in the header)
    with its saturated mask ``WORK/views/<bracket>.saturated.png``. Only these small views stay in
    memory until their session is assembled;
-2. the view's lens, fall-off and orientation from the row's ``view_json`` (the session TOML,
-   :mod:`f2l.capture.lens`), mapped from the full frame to the box-averaged view. A bracket
-   without a lens cannot be placed on the sphere and is reported (``unplaced``), not guessed.
+2. the view's lens, fall-off and orientation from the row's ``view_json`` (the session TOML's
+   :class:`~f2l.capture.view_spec.ViewSpec`, :mod:`f2l.capture.lens`), mapped from the full
+   frame to the box-averaged view. A bracket without a lens cannot be placed on the sphere and is
+   reported (``unplaced``), not guessed.
 
 Then per session, :func:`f2l.capture.sphere.assemble` blends the session's placed views into
 ``WORK/probes/<session>.exr`` (DESIGN lat-long convention, float32, default 128 x 256) with the
@@ -36,7 +37,6 @@ bracket or session becomes that row's ``error``: the other rows and probes.parqu
 
 from __future__ import annotations
 
-import json
 from concurrent.futures import ThreadPoolExecutor
 import math
 import os
@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from f2l.capture.probe_rows import _row, _safe, _write_mask_png, checked_rows, finite_row
+from f2l.capture.view_spec import ViewSpec, ViewSpecError
 from f2l.capture.views import ViewOptions, _finish_one, _merge_frames, _set_sun
 
 
@@ -247,6 +248,15 @@ def _given_row(root: Path, r: dict, grid_height: int, grid_width: int) -> dict:
     return row
 
 
+def _describes_lens(row: dict) -> bool:
+    """Whether a captures row's view spec gives a lens geometry (an undecodable one is described,
+    but unusable: its brackets' rows say why)."""
+    try:
+        return ViewSpec.from_json(row["view_json"]).lens.describes_geometry
+    except ViewSpecError:
+        return True
+
+
 def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict]:
     """A ``skipped`` probe row for each session with no merged bracket and no given probe, saying
     exactly what the session lacks."""
@@ -261,8 +271,7 @@ def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict
         else:
             lacks.append("no sky bracket: no frames in a sky/ folder or with role sky_bracket in session.toml, "
                          "and no frames of one camera with stepped exposures")
-        views = [json.loads(r["view_json"] or "{}") for r in members]
-        if not any(("projection" in v or "colmap_model" in v) for v in views):
+        if not any(_describes_lens(r) for r in members):
             problem = next((r["session_problem"] for r in members if r.get("session_problem")), "")
             lacks.append("session.toml was not used: " + problem if problem else
                          "no lens description (session.toml [lens] projection or colmap_model) to place a view")

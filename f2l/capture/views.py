@@ -6,7 +6,6 @@ saturation mask; :func:`load_view` reads one back, placed by its session TOML vi
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -15,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from f2l.capture.probe_rows import (COLOUR_SPACES, LENS_KEYS, _read_mask_png, _row, _safe, _write_mask_png,
-                                    camera_for, finite_row, pose_problem)
+from f2l.capture.probe_rows import COLOUR_SPACES, _read_mask_png, _row, _safe, _write_mask_png, camera_for, finite_row
+from f2l.capture.view_spec import ViewSpec
 
 
 def downsample_plan(height: int, width: int, max_side: int) -> tuple[int, int, int]:
@@ -94,33 +93,32 @@ def _finish_one(work: Path, bid: str, frames: list[dict], opts: ViewOptions, mer
                 t0: float) -> tuple[dict, object | None]:
     """Downsampling, colour, fall-off and the view's files for a merged bracket → (row, placed
     view or None). The lens is read first: a view without one is written as merged (unplaced)."""
+    from f2l.capture.lens import lens_of
     from f2l.capture.sphere import View
     from f2l.io.exr import REC709_CHROMATICITIES, write_exr
 
     if merged is None:
         return error_row, None
     session, first = frames[0]["session"], frames[0]
-    info = json.loads(first["view_json"] or "{}")
     full_h, full_w = merged.mosaic.shape
     k, crop_y, crop_x = downsample_plan(full_h, full_w, opts.view_max_side)
     rgb, saturated = downsample_view(merged.rgb, merged.saturated, opts.view_max_side)
     warnings = list(merged.warnings)
     rgb, space = _to_colour_space(rgb, merged, opts, warnings)
     frame = (full_w, full_h, k, crop_x, crop_y)
-    camera, problem, failed = None, "", ""
+    camera, problem, failed, spec = None, "", "", None
     try:
-        camera = camera_for(info, rgb.shape[1], rgb.shape[0], frame=frame, exif_focal_mm=first.get("focal_length_mm"))
-        from f2l.capture.lens import lens_from_view
-
-        gain = lens_from_view(info, full_w, full_h, first.get("focal_length_mm")).gain(camera, k, crop_x, crop_y,
-                                                                                      opts.root)
+        spec = ViewSpec.from_json(first["view_json"])
+        lens = lens_of(spec.lens, full_w, full_h, first.get("focal_length_mm"))
+        camera = lens.view_camera(rgb.shape[1], rgb.shape[0], k, crop_x, crop_y, **spec.pose_deg())
+        gain = lens.gain(camera, k, crop_x, crop_y, opts.root)
         if gain is not None:
             rgb = rgb / gain[..., None]
     except (ValueError, ArithmeticError) as exc:
         camera, problem = None, f"{first['path']}: {exc}"
         if first.get("session_problem"):
             problem += f" (session.toml was not used: {first['session_problem']})"
-        if pose_problem(info) or any(key in info for key in LENS_KEYS):  # described, but unusable
+        if spec is None or spec.lens.describes_geometry:  # described, but unusable
             failed = f"session {session}: bracket {bid}: the view cannot be placed: {problem}"
     rel = f"views/{_safe(bid)}.exr"
     units = "linear Rec.709" if space == "rec709" else "camera RGB"
@@ -155,7 +153,8 @@ def merge_bracket_view(root: str | os.PathLike, out_dir: str | os.PathLike, brac
 def load_view(out_dir: str | os.PathLike, row: dict, view_json: str, exif_focal_mm: float | None = None):
     """The placed :class:`~f2l.capture.sphere.View` of a merged bracket from its files under
     ``out_dir`` (``row`` from :func:`merge_bracket_view`, status ``ok``) and the ``view_json`` of
-    its frames; ValueError when the row has no lens model."""
+    its frames (:meth:`~f2l.capture.view_spec.ViewSpec.from_json`); ValueError when the row has
+    no lens model."""
     from f2l.capture.sphere import View
     from f2l.io.exr import read_exr_with_metadata
 
@@ -163,7 +162,7 @@ def load_view(out_dir: str | os.PathLike, row: dict, view_json: str, exif_focal_
     rgb, meta = read_exr_with_metadata(out_dir / row["path"])
     saturated = _read_mask_png(out_dir / row["path"].replace(".exr", ".saturated.png"))
     frame = tuple(int(v) for v in meta["f2l_view_from_frame"].split()) if "f2l_view_from_frame" in meta else None
-    camera = camera_for(json.loads(view_json or "{}"), rgb.shape[1], rgb.shape[0], frame=frame,
+    camera = camera_for(ViewSpec.from_json(view_json), rgb.shape[1], rgb.shape[0], frame=frame,
                         exif_focal_mm=exif_focal_mm)
     return View(image=rgb, camera=camera, saturated=saturated, name=row["name"])
 

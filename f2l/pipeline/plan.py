@@ -21,6 +21,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from f2l.capture.view_spec import ViewSpec, ViewSpecError
+
 
 def relative_message(message: str, root: str | os.PathLike) -> str:
     """``message`` with the capture root removed from the paths in it: the absolute forms
@@ -50,40 +52,33 @@ class SessionPlan:
     def given_probe(self) -> dict | None:
         return self.given_probes[0] if self.given_probes else None
 
-    def _probe_azimuth(self):
-        """The session TOML's ``probe_azimuth_deg`` as written (from any of its rows), or None."""
-        import json
-
+    def _probe_azimuth(self) -> tuple[float | None, str | None]:
+        """(the session TOML's ``probe_azimuth_deg`` from the first of its rows by path that gives
+        it, or None; why a row's value cannot be used, or None)."""
         rows = self.faces + self.charts + self.given_probes + [
             f for frames in self.brackets.values() for f in frames]
         for row in sorted(rows, key=lambda r: r["path"]):
             try:
-                view = json.loads(row["view_json"] or "{}")
-            except ValueError:
+                spec = ViewSpec.from_json(row["view_json"])
+            except ViewSpecError as exc:
+                if exc.key == "probe_azimuth_deg":
+                    return None, f"session.toml: {exc}"
                 continue
-            if isinstance(view, dict) and "probe_azimuth_deg" in view:
-                return view["probe_azimuth_deg"]
-        return None
+            if spec.probe_azimuth_deg is not None:
+                return float(spec.probe_azimuth_deg), None
+        return None, None
 
     @property
     def probe_azimuth_deg(self) -> float | None:
         """The session TOML's ``probe_azimuth_deg`` (from any of its rows), None when not given
-        or not a finite number (:attr:`probe_azimuth_problem` says which)."""
-        import math
-
-        value = self._probe_azimuth()
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        return None
+        or not a finite angle (:attr:`probe_azimuth_problem` says which)."""
+        return self._probe_azimuth()[0]
 
     @property
     def probe_azimuth_problem(self) -> str | None:
         """Why the session's ``probe_azimuth_deg`` cannot turn its probe (given, but not a finite
-        number), or None."""
-        value = self._probe_azimuth()
-        if value is not None and self.probe_azimuth_deg is None:
-            return f"probe_azimuth_deg = {value!r} in session.toml is not a finite angle"
-        return None
+        angle), or None."""
+        return self._probe_azimuth()[1]
 
 
 def _left(row: dict, stage: str, status: str, reason: str, root) -> dict:
