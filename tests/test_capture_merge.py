@@ -5,7 +5,8 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from f2l.capture.dng import synthetic_sky_scene, write_bracket
-from f2l.capture.merge import BracketError, bench_merge, merge_bracket, raw_frame
+from f2l.capture.merge import BracketError, merge_bracket, raw_frame
+from f2l.dev.bench_merge import bench_merge
 from f2l.io.raw_meta import XYZ_TO_REC709, RawError, bayer_mosaic, demosaic_bilinear, read_raw
 
 EXPOSURES_S = [1 / 4000 * 4**k for k in range(7)]  # 2 EV apart at f/8, ISO 100: 1/4000 s ... 1.024 s

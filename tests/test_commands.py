@@ -52,7 +52,7 @@ def test_demo_end_to_end_small(tmp_path):
 
 
 def test_bench_small(tmp_path):
-    from f2l.bench import run_bench
+    from f2l.dev.bench import run_bench
 
     result = run_bench(faces=1, models=["sh9"], out_dir=tmp_path, image_size=48, grid=LatLongGrid(16, 32), threads=1)
     assert "adaptive" in result["markdown"] and "sh9" in result["markdown"]

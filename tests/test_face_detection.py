@@ -189,7 +189,7 @@ def test_photos_without_faces_give_none(landmarker, name, upscale):
 
 def test_bench_detect_runs_the_real_code_small():
     """`f2l bench-detect` at a tiny size: the recall table, the face-free count and a timing row."""
-    from f2l.face.bench_detect import format_table, run_detect_bench
+    from f2l.dev.bench_detect import format_table, run_detect_bench
 
     r = run_detect_bench(photos=3, negatives=3, sizes_mp=(0.5,), repeats=1, seed=1)
     assert r["true_faces"] >= 3 and r["recall"] == 1.0 and r["extra_detections"] == 0

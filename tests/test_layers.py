@@ -21,7 +21,7 @@ LAYERS = (
     ("pipeline", "prior", "render", "testing"),
     ("evaluation",),
     ("report",),
-    ("bench", "demo", "dev"),
+    ("demo", "dev"),
     ("api", "cli"),
 )
 """f2l's packages (and top-level modules) by layer. ``face`` (photo decoding, landmarks, the face

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from f2l.bench import visibility_error
+from f2l.dev.bench import visibility_error
 from f2l.lighting.grid import LatLongGrid
 from f2l.transport import compute_visibility, unpack_bits, visibility_stats
 from f2l.transport.pixel_lattice import plan_lattice

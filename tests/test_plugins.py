@@ -352,7 +352,7 @@ def test_bench_keeps_going_past_a_refused_or_failing_plugin(bad_site, tmp_path):
         "        if LateFail.calls > 3:\n            raise RuntimeError('sky exploded')\n"
         "        return super().sky(params)\n")
     make_dist(bad_site, "late-fail", {"late_fail": "late_fail:LateFail"})
-    from f2l.bench import run_bench
+    from f2l.dev.bench import run_bench
 
     try:
         result = run_bench(faces=1, models=["weights_in_sky", "late_fail", "sh9"], out_dir=tmp_path,

@@ -62,7 +62,7 @@ def test_rendered_recall_reads_the_true_boxes(tmp_path):
     """bench-detect --rendered on a folder laid out as render-faces writes it: two astronauts, one
     too narrow to count."""
     skdata = pytest.importorskip("skimage.data")
-    from f2l.face.bench_detect import ASTRONAUT_FACE, format_rendered, rendered_recall
+    from f2l.dev.bench_detect import ASTRONAUT_FACE, format_rendered, rendered_recall
 
     a = skdata.astronaut()
     canvas = np.full((600, 1400, 3), 90, np.uint8)
@@ -91,7 +91,7 @@ def test_accuracy_by_face_width_joins_truth_records_and_estimates(tmp_path):
     from typer.testing import CliRunner
 
     from f2l.cli import app
-    from f2l.face.bench_detect import ASTRONAUT_FACE
+    from f2l.dev.bench_detect import ASTRONAUT_FACE
     from f2l.io.exr import write_exr
     from f2l.lighting.grid import LatLongGrid, direction_from_angles
     from f2l.evaluation.face_width import accuracy_by_face_width

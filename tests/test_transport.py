@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from f2l.dev.bench_transport import sample_pixels, sunny_sky, synthetic_head
 from f2l.lighting.grid import LatLongGrid
 from f2l.transport import Transport, compute_visibility, unpack_bits, visibility_stats
-from f2l.transport.bench_transport import sample_pixels, sunny_sky, synthetic_head
 
 GRID = LatLongGrid(64, 128)
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import os
-import timeit
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -51,7 +50,7 @@ from f2l.io.raw_meta import (  # noqa: F401 (RawFrame, raw_frame: re-exported me
 
 __all__ = [
     "BracketError", "BracketStart", "NoiseModel", "RawFrame", "FrameInfo", "MergedHDR", "raw_frame", "merge_bracket",
-    "bench_merge", "LUMINANCE_CD_M2_PER_UNIT",
+    "LUMINANCE_CD_M2_PER_UNIT",
 ]  # fmt: skip
 
 LUMINANCE_CD_M2_PER_UNIT = 78.0 / (0.65 * 100.0)
@@ -565,24 +564,3 @@ def _motion(metas, infos, quads, merged_q, merged_var, zero, dark, noise, tolera
         count = int(np.count_nonzero(well))
         info.inconsistent_fraction = float(np.count_nonzero(bad)) / count if count else 0.0
         info.moved = info.inconsistent_fraction > moved_fraction
-
-
-def bench_merge(paths: Sequence[str | os.PathLike], *, repeat: int = 3, **merge_kwargs) -> dict:
-    """Time bare ``rawpy.imread(p).raw_image_visible`` over ``paths`` against :func:`merge_bracket`.
-
-    Returns best-of-``repeat`` seconds ``decode_s`` and ``merge_s`` (metadata + decode + merge +
-    demosaic + motion check), their ``ratio``, the bracket's ``frames`` and ``megapixels`` per frame.
-    """
-    import rawpy
-
-    def decode_all() -> None:
-        for p in paths:
-            with rawpy.imread(os.fspath(p)) as raw:
-                raw.raw_image_visible  # noqa: B018 (the decode being timed)
-
-    decode_all()  # warm the file cache
-    decode_s = min(timeit.repeat(decode_all, number=1, repeat=max(1, repeat)))
-    merge_s = min(timeit.repeat(lambda: merge_bracket(paths, **merge_kwargs), number=1, repeat=max(1, repeat)))
-    meta = read_raw_metadata(paths[0], levels=False)
-    return {"frames": len(paths), "megapixels": meta.width * meta.height / 1e6, "decode_s": decode_s,
-            "merge_s": merge_s, "ratio": merge_s / decode_s if decode_s > 0 else math.inf}  # fmt: skip

@@ -125,7 +125,7 @@ def bench_detect_cmd(
     json_out: JsonOut = False,
 ) -> None:
     """Face detection on real photographs framed wide: recall by face width, false detections per 100 face-free photos, time by photo size."""
-    from f2l.face.bench_detect import format_rendered, format_table, rendered_recall, run_detect_bench
+    from f2l.dev.bench_detect import format_rendered, format_table, rendered_recall, run_detect_bench
 
     try:
         sizes = tuple(float(v) for v in sizes_mp.split(",") if v.strip())

@@ -69,7 +69,7 @@ def bench(
     sun_skip_faces: int = typer.Option(2, help="Overcast faces on which each compact-sun model (sunsky, plugins) runs with and without its exact sun core (0: none)."),
 ) -> None:
     """Error versus run time of the installed models on synthetic faces (table + PNG plot)."""
-    from f2l.bench import run_bench
+    from f2l.dev.bench import run_bench
 
     result = run_bench(faces=faces, models=model, out_dir=out, image_size=image_size, grid=_grid(grid), threads=threads,
                        seed=seed, sun_skip_faces=sun_skip_faces)

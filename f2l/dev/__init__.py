@@ -1,1 +1,2 @@
-"""Benchmarks that need more than one stage (``f2l dev …``): they sit above the stages they time."""
+"""Benchmarks and developer tools (``f2l dev …``): they sit above the stages they time, so no
+library module holds a benchmark."""

@@ -28,6 +28,9 @@ import time
 
 import numpy as np
 
+from f2l.face.detector import SHORT_RANGE, TiledDetector, iou
+from f2l.face.landmarker import FaceLandmarker
+
 BANDS = ((40, 80), (80, 160), (160, 320), (320, math.inf))
 ASTRONAUT_FACE = np.array([172.0, 67.0, 279.0, 175.0])  # detected at 512 px (x0, y0, x1, y1)
 HEAD_AND_SHOULDERS = (100, 10, 350, 330)
@@ -100,9 +103,6 @@ def composite(rng: np.random.Generator, long_side: int, astronaut: np.ndarray, b
 
 
 def _landmarker(detector: str):
-    from f2l.face.detector import SHORT_RANGE, TiledDetector
-    from f2l.face.landmarker import FaceLandmarker
-
     lm = FaceLandmarker(threads=1)
     if detector == "short_range":
         import zipfile
@@ -121,8 +121,6 @@ def _landmarker(detector: str):
 def run_detect_bench(photos: int = 60, negatives: int = 100, sizes_mp: tuple[float, ...] = (1, 4, 12, 24, 50),
                      repeats: int = 3, seed: int = 0, detector: str = "full_range",
                      min_face_px: float = 40.0) -> dict:
-    from f2l.face.detector import iou
-
     skdata = _skdata()
     lm = _landmarker(detector)
     astronaut = skdata.astronaut()
@@ -209,8 +207,6 @@ def rendered_recall(folders, min_face_px: float = 40.0, detector: str = "full_ra
     from pathlib import Path
 
     from PIL import Image
-
-    from f2l.face.detector import iou
 
     lm = _landmarker(detector)
     bands = {b: [0, 0] for b in BANDS}

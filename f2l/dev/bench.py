@@ -16,8 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.dev.bench_transport import sunny_sky
+from f2l.estimate import EstimationError, EstimatorConfig, FaceObservation, estimate
 from f2l.io.atomic import write_text_atomic
 from f2l.lighting.grid import LatLongGrid
+from f2l.metrics import METRIC_NAMES, evaluate_pair
+from f2l.metrics.lighting import sun_energy_fraction
+from f2l.models.capabilities import declared
+from f2l.models.registry import ModelNotFoundError, discover, load_model
+from f2l.report.plots import log_time_axis
+from f2l.synth.render import make_synthetic_set
+from f2l.transport import Transport, compute_visibility, visibility_stats
 
 
 def _peak_rss_mb() -> float:
@@ -29,9 +38,6 @@ def visibility_error(bits: np.ndarray, exact: np.ndarray, normals: np.ndarray, g
     the shading error under a sunny sky (bench_transport.sunny_sky: the sun texel carries 10x
     the sky's irradiance), as ||T_a l - T_e l|| / ||T_e l|| and the fraction of pixels whose
     shading is off by more than 1%."""
-    from f2l.transport import Transport
-    from f2l.transport.bench_transport import sunny_sky
-
     l = sunny_sky(grid)
     approx = Transport(bits, normals, grid).matmul(l)
     ref = Transport(exact, normals, grid).matmul(l)
@@ -54,13 +60,6 @@ def run_bench(
     exact_visibility: bool = True,
     sun_skip_faces: int = 2,
 ) -> dict:
-    from f2l.estimate import EstimatorConfig, EstimationError, FaceObservation, estimate
-    from f2l.metrics import METRIC_NAMES, evaluate_pair
-    from f2l.models.capabilities import declared
-    from f2l.models.registry import ModelNotFoundError, discover, load_model
-    from f2l.synth.render import make_synthetic_set
-    from f2l.transport import compute_visibility, visibility_stats
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = models or [n for n, info in discover().items() if info.ok]
@@ -162,12 +161,6 @@ def run_bench(
 def _sun_core_skip_table(name: str, n: int, grid: LatLongGrid, threads: int, seed: int, image_size: int) -> list[str]:
     """A compact-sun model on ``n`` overcast faces with and without the exact sun core: what
     skipping it saves."""
-    from f2l.estimate import EstimatorConfig, FaceObservation, estimate
-    from f2l.metrics import evaluate_pair
-    from f2l.metrics.lighting import sun_energy_fraction
-    from f2l.models.registry import load_model
-    from f2l.synth.render import make_synthetic_set
-
     model = load_model(name, grid)
     rows = {"skipped when overcast (default)": [], "always exact": []}
     for face in make_synthetic_set(n, grid, seed + 1000, image_size=image_size, threads=threads, overcast_fraction=1.0):
@@ -191,9 +184,6 @@ def _plot(summary: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from f2l.metrics import METRIC_NAMES
-    from f2l.report.plots import log_time_axis
 
     fig, axes = plt.subplots(2, 4, figsize=(14, 6.5))
     for ax, metric in zip(axes.ravel(), METRIC_NAMES):

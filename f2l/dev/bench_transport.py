@@ -1,6 +1,6 @@
 """Benchmark of visibility / transport on a synthetic head-like mesh.
 
-``python -m f2l.transport.bench_transport [n_pixels] [threads]`` prints the figures as JSON.
+``python -m f2l.dev.bench_transport [n_pixels] [threads]`` prints the figures as JSON.
 The mesh is an icosphere (radius 1, centred at the origin) with a Gaussian 'nose' bump towards
 the camera (+Z), two eye sockets (dents) and a chin ridge, so front pixels see real
 self-occlusion. Pixels are sampled on front-facing triangles (z > 0 side) with barycentric
