@@ -44,7 +44,10 @@ def test_a_photo_gives_a_probe_per_face_and_a_rerun_reuses_everything(photos, tm
     assert summary["ok"] == 2 and summary["photos"]["counts"] == {"computed": 1, "ok": 1}
     rows = pq.read_table(out / "estimates.parquet").to_pylist()
     assert sorted(r["face_id"].rsplit("-", 1)[1] for r in rows) == ["f0", "f1"]
-    assert len(list((out / "probes" / "sh9").glob("*.exr"))) == 2
+    # the two faces of one photo share one light (--joint photo, the default): one probe, two rows
+    assert len(list((out / "probes" / "sh9").glob("*.exr"))) == 1
+    assert rows[0]["probe_path"] == rows[1]["probe_path"] and {r["group_size"] for r in rows} == {2}
+    assert all(r["group_used"] for r in rows)
     from f2l.io.exr import read_exr
 
     for exr in (out / "probes" / "sh9").glob("*.exr"):
@@ -58,6 +61,9 @@ def test_a_photo_gives_a_probe_per_face_and_a_rerun_reuses_everything(photos, tm
     summary = json.loads(again.stdout)
     assert summary["photos"]["counts"] == {"reused": 1, "ok": 1}
     assert summary["skipped_done"] == 2 and summary["total"] == 0
+    alone = invoke("estimate", photos / "two.jpg", "-m", "sh9", "--out", tmp_path / "alone", "--joint", "none", "--json")
+    assert alone.exit_code == 0, alone.output
+    assert len(list((tmp_path / "alone" / "probes" / "sh9").glob("*.exr"))) == 2
 
 
 def test_a_folder_with_bad_photos_estimates_the_good_ones_and_says_why_not_the_others(photos, tmp_path):

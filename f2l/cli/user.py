@@ -76,6 +76,13 @@ def estimate(
              "needs the records' 3-D points; default 0 = off). 0.01 is the value measured on make eval-real "
              "(docs/experiments/accuracy_issue16.md); it costs about 15% more time a face, and on Lambertian faces (f2l's own renders) "
              "it is a bias."),
+    joint: str = typer.Option(
+        "photo", "--joint",
+        help="photo: the faces of one photo share one light (one probe per photo, a row per face saying how well "
+             "it agrees; a face that disagrees, e.g. in another's shadow, is left out and gets its own); "
+             "none: every face alone."),
+    also_single: bool = typer.Option(
+        False, "--also-single", help="With --joint photo, also estimate every face alone into OUT/single (for comparison)."),
     json_out: JsonOut = False,
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
@@ -90,6 +97,8 @@ def estimate(
         _fail(f"no such photo or shard path: {', '.join(missing)}")
     if executor not in ("local", "ray"):
         raise typer.BadParameter("must be local or ray", param_hint="--executor")
+    if joint not in ("photo", "none"):
+        raise typer.BadParameter("must be photo or none", param_hint="--joint")
     photos = [s for s in shards if is_photo_input(s)]
     fitted = None
     if photos:
@@ -109,11 +118,13 @@ def estimate(
     from f2l.models.registry import ModelNotFoundError
 
     try:
-        summary = run_estimates(
-            shards, models=model, out_dir=out, workers=workers, threads=threads, max_pixels=max_pixels,
-            max_iter=max_iter, progress=not json_out, sun_prior=sun_prior, executor=executor,
-            ray_address=address, skin_gloss=skin_gloss, skin_reflection=skin_reflection,
-        )
+        settings = dict(models=model, workers=workers, threads=threads, max_pixels=max_pixels, max_iter=max_iter,
+                        progress=not json_out, sun_prior=sun_prior, executor=executor, ray_address=address,
+                        skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+        summary = run_estimates(shards, out_dir=out, joint=joint, **settings)
+        if also_single and summary["joint"] != "none":
+            single = run_estimates(shards, out_dir=Path(out) / "single", joint="none", **settings)
+            summary["single"] = {k: single[k] for k in ("out", "total", "ok", "failed", "elapsed_s")}
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))
     except ExecutorUnavailable as exc:

@@ -20,10 +20,18 @@ from f2l.estimate.estimator import EstimationError, EstimatorConfig, FaceObserva
 from f2l.models.capabilities import SunAngles, declared
 
 _MODEL_CACHE: dict = {}
+# the joint estimate's columns of a face estimated alone (f2l.estimate.group_record fills them)
+GROUP_DEFAULTS = {"group_id": "", "group_size": 1, "group_used": None, "agreement": None, "face_weight": None,
+                  "exposure_gain": None}
 
 
-def config_hash(model_name: str, model_version: str, cfg: EstimatorConfig) -> str:
-    payload = json.dumps({"model": model_name, "version": model_version, "f2l": __version__, "cfg": asdict(cfg)}, sort_keys=True)
+def config_hash(model_name: str, model_version: str, cfg: EstimatorConfig, joint: dict | None = None) -> str:
+    """The settings an estimate depends on, hashed: model name and version, f2l's version, the
+    estimator's configuration and, for faces estimated together, the joint estimate's settings."""
+    settings = {"model": model_name, "version": model_version, "f2l": __version__, "cfg": asdict(cfg)}
+    if joint:
+        settings["joint"] = joint
+    payload = json.dumps(settings, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
@@ -61,6 +69,7 @@ def _base_row(record_like: dict, model: str) -> dict:
         "absolute_scale_source": "",
         "config_hash": "",
         "timings_json": "{}",
+        **GROUP_DEFAULTS,
     }
 
 
@@ -118,9 +127,6 @@ def estimate_in_memory(record, model_name: str, cfg: EstimatorConfig) -> InMemor
 def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig) -> dict:
     """Estimate one face with one model and write its probe and preview; never raises for a bad
     face (status in the row)."""
-    from f2l.io.exr import write_exr
-    from f2l.io.preview import save_png, tonemap
-
     row = _base_row({"face_id": record.face_id, "source_path": record.source_path,
                      "grid_height": record.grid_height, "grid_width": record.grid_width}, model_name)
     t0 = time.perf_counter()
@@ -133,42 +139,51 @@ def estimate_record(record, model_name: str, out_dir: str, cfg: EstimatorConfig)
         if done.status != "bad_record":
             row["runtime_s"] = time.perf_counter() - t0
         return row
-    result, scale, scale_source = done.result, done.scale, done.scale_source
     try:
-        safe_id = _safe_name(record.face_id)
-        probe_rel = f"probes/{model_name}/{safe_id}.exr"
-        preview_rel = f"previews/{model_name}/{safe_id}.png"
-        (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
-        (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
-        probe = result.probe if scale is None else (result.probe * scale).astype(np.float32)
-        write_exr(Path(out_dir) / probe_rel, probe,
-                  metadata={"f2l_model": model_name, "f2l_face_id": record.face_id, "f2l_convention": "latlong,+Y up,centre=-Z",
-                            "f2l_units": "relative: the photo's linear values (1 = full scale)" if scale is None
-                            else "cd/m2 (Rec.709 Y of the RGB is the luminance)",
-                            "f2l_absolute_scale_cd_m2": "" if scale is None else repr(float(scale)),
-                            "f2l_absolute_scale_source": scale_source})
-        save_png(Path(out_dir) / preview_rel, tonemap(probe))
-        row.update(
-            params=[float(v) for v in result.params],
-            param_names=list(result.param_names),
-            albedo=[float(v) for v in result.albedo],
-            ground_albedo=result.ground_albedo,
-            sun_direction=None if result.sun_direction is None else [float(v) for v in result.sun_direction],
-            loss=float(result.loss),
-            iterations=int(result.iterations),
-            converged=bool(result.converged),
-            status="ok",
-            message=done.message,
-            probe_path=probe_rel,
-            preview_path=preview_rel,
-            timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
-            absolute_scale_cd_m2=None if scale is None else float(scale),
-            absolute_scale_source=scale_source,
-        )
+        write_result(row, done.result, done.scale, done.scale_source, model_name, out_dir, _safe_name(record.face_id),
+                     record.face_id, done.message)
     except Exception as exc:  # noqa: BLE001 - one failure never stops the batch
         row.update(status="error", message=f"{record.face_id}: {type(exc).__name__}: {exc}")
     row["runtime_s"] = time.perf_counter() - t0
     return row
+
+
+def write_result(row: dict, result, scale: float | None, scale_source: str, model_name: str, out_dir,
+                 name: str, face_ids: str, message: str) -> None:
+    """Write ``result``'s probe (``probes/<model>/<name>.exr``, in cd/m² when ``scale`` is known)
+    and its preview, and fill ``row`` with the estimate (status ok, ``message``)."""
+    from f2l.io.exr import write_exr
+    from f2l.io.preview import save_png, tonemap
+
+    probe_rel = f"probes/{model_name}/{name}.exr"
+    preview_rel = f"previews/{model_name}/{name}.png"
+    (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
+    (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
+    probe = result.probe if scale is None else (result.probe * scale).astype(np.float32)
+    write_exr(Path(out_dir) / probe_rel, probe,
+              metadata={"f2l_model": model_name, "f2l_face_id": face_ids, "f2l_convention": "latlong,+Y up,centre=-Z",
+                        "f2l_units": "relative: the photo's linear values (1 = full scale)" if scale is None
+                        else "cd/m2 (Rec.709 Y of the RGB is the luminance)",
+                        "f2l_absolute_scale_cd_m2": "" if scale is None else repr(float(scale)),
+                        "f2l_absolute_scale_source": scale_source})
+    save_png(Path(out_dir) / preview_rel, tonemap(probe))
+    row.update(
+        params=[float(v) for v in result.params],
+        param_names=list(result.param_names),
+        albedo=[float(v) for v in result.albedo],
+        ground_albedo=result.ground_albedo,
+        sun_direction=None if result.sun_direction is None else [float(v) for v in result.sun_direction],
+        loss=float(result.loss),
+        iterations=int(result.iterations),
+        converged=bool(result.converged),
+        status="ok",
+        message=message,
+        probe_path=probe_rel,
+        preview_path=preview_rel,
+        timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
+        absolute_scale_cd_m2=None if scale is None else float(scale),
+        absolute_scale_source=scale_source,
+    )
 
 
 def record_absolute_scale(record) -> tuple[float | None, str]:

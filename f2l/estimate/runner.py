@@ -21,6 +21,7 @@ from pathlib import Path
 
 from f2l import __version__
 from f2l.estimate.estimator import EstimatorConfig
+from f2l.estimate.group_record import JOINT_MODES, estimate_alone, estimate_group, joint_hash
 from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior,  # noqa: F401
                                  config_hash, estimate_record, torch_threads)
 from f2l.io.tables import ESTIMATE_RUN_FILE as RUN_FILE, ESTIMATES_FILE  # noqa: F401 (named in f2l.io: evaluate reads them)
@@ -52,10 +53,13 @@ def run_estimates(
     rows_per_part: int = 64,
     skin_gloss: float | None = None,
     skin_reflection: float | None = None,
+    joint: str = "photo",
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
     ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
-    EstimatorConfig's (ignored with ``config``)."""
+    EstimatorConfig's (ignored with ``config``). ``joint`` "photo": the faces of one photo (records
+    in a row with the same ``source_path``) share one light (f2l.estimate.group_record); "none":
+    every face alone. The Ray executor estimates faces alone."""
     from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records, shard_files
     from f2l.io.record_limits import declared_size_problem
@@ -63,6 +67,10 @@ def run_estimates(
 
     if executor not in ("local", "ray"):
         raise ValueError(f"executor must be 'local' or 'ray', got {executor!r}")
+    if joint not in JOINT_MODES:
+        raise ValueError(f"joint must be one of {', '.join(JOINT_MODES)}, got {joint!r}")
+    if executor == "ray":
+        joint = "none"
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     workers = default_workers(threads) if workers is None else max(1, int(workers))
@@ -72,15 +80,16 @@ def run_estimates(
         cfg = dataclasses.replace(cfg, skin_gloss=float(skin_gloss))
     if config is None and skin_reflection is not None:
         cfg = dataclasses.replace(cfg, skin_reflection=float(skin_reflection))
-    hashes = {}
+    hashes, joint_hashes = {}, {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
         hashes[name] = config_hash(name, model_class(name).version, cfg)
+        joint_hashes[name] = joint_hash(name, model_class(name).version, cfg)
     shard_paths = [str(Path(s).resolve()) for s in shards]
     run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models,
-                "config": asdict(cfg), "config_hashes": hashes, "executor": executor}
+                "config": asdict(cfg), "config_hashes": hashes, "executor": executor, "joint": joint}
     _write_json_atomic(out_dir / RUN_FILE, run_info)
     old_rows = resume.previous_rows(out_dir)
-    done = resume.done_keys(old_rows, hashes)
+    done = resume.done_keys(old_rows, hashes) | resume.done_keys(old_rows, joint_hashes)
 
     try:
         total_records = sum(count_records(s) for s in shards)
@@ -102,7 +111,44 @@ def run_estimates(
 
     first_in: dict[str, str] = {}  # face_id -> the shard file it was first read from
 
-    def tasks():
+    def grouped():
+        """(records of one photo, or one BadRecord, model) still to do: with ``joint`` "photo" the
+        good records in a row with the same source_path form a group; a group is done when all
+        its faces are."""
+        group: list = []
+
+        def flush():
+            for name in models:
+                if all((r.face_id, name) in done for r in group):
+                    counts["skipped"] += len(group)
+                    bar.update(len(group))
+                    continue
+                yield group, name
+
+        for rec, _ in _records():
+            if isinstance(rec, BadRecord):
+                for name in models:
+                    if not rec.reason.startswith("duplicate face_id") and (rec.face_id, name) in done:
+                        counts["skipped"] += 1
+                        bar.update(1)
+                        continue
+                    yield rec, name
+                continue
+            if group and (joint == "none" or rec.source_path != group[0].source_path):
+                yield from flush()
+                group = []
+            group.append(rec)
+        if group:
+            yield from flush()
+
+    def _records():
+        """Every (record or BadRecord, model) once per record (the first model's pair stands
+        for the record: :func:`grouped` asks about every model itself)."""
+        for rec, name in tasks(skip_done=False):
+            if name == models[0]:
+                yield rec, name
+
+    def tasks(skip_done: bool = True):
         """(record or BadRecord, model) pairs still to do; done ones are counted and skipped. A
         face_id read before (this or an earlier shard, good or bad) becomes a duplicate BadRecord:
         only the first is estimated, so no probe of it is overwritten, and a run writes one row
@@ -125,12 +171,13 @@ def run_estimates(
                         if isinstance(rec, BadRecord) and rec.reason.startswith("duplicate face_id"):
                             yield rec, name  # never done: the first one's row holds the key
                             continue
-                        if (rec.face_id, name) in done:
+                        if skip_done and (rec.face_id, name) in done:
                             counts["skipped"] += 1
                             bar.update(1)
                             continue
                         yield rec, name
 
+    work = estimate_group if joint == "photo" else estimate_alone
     try:
         if executor == "ray":
             from f2l.estimate.ray_executor import ray_estimate_rows
@@ -140,9 +187,12 @@ def run_estimates(
                 handle(row)
         elif workers <= 1:
             torch_threads(threads)
-            for rec, name in tasks():
-                handle(_bad_row(rec, name) if isinstance(rec, BadRecord)
-                       else estimate_record(rec, name, str(out_dir), cfg))
+            for rec, name in grouped():
+                if isinstance(rec, BadRecord):
+                    handle(_bad_row(rec, name))
+                    continue
+                for row in work(rec, name, str(out_dir), cfg):
+                    handle(row)
         else:
             import multiprocessing
 
@@ -151,17 +201,19 @@ def run_estimates(
             with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(threads,),
                                      mp_context=context) as pool:
                 pending: set[Future] = set()
-                for rec, name in tasks():
+                for rec, name in grouped():
                     if isinstance(rec, BadRecord):
                         handle(_bad_row(rec, name))
                         continue
-                    pending.add(pool.submit(estimate_record, rec, name, str(out_dir), cfg))
+                    pending.add(pool.submit(work, rec, name, str(out_dir), cfg))
                     if len(pending) >= 2 * workers:
                         finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                         for fut in finished:
-                            handle(fut.result())
+                            for row in fut.result():
+                                handle(row)
                 for fut in pending:
-                    handle(fut.result())
+                    for row in fut.result():
+                        handle(row)
         parts.flush()
         resume.finalise(out_dir, [], _merged_rows(old_rows, parts.rows))
     finally:
@@ -173,6 +225,7 @@ def run_estimates(
         "estimates": str(out_dir / ESTIMATES_FILE),
         "models": models,
         "executor": executor,
+        "joint": joint,
         "workers": workers,
         "total": total,
         "ok": counts["ok"],

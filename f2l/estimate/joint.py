@@ -1,0 +1,552 @@
+"""One light for several faces: the joint estimate (faces of one photo, or of one session).
+
+Faces under the same sky see it from several sides and cast their shadows in different
+directions. The joint estimate fits one set of lighting parameters theta to all of them, with a
+skin albedo rho_i and a ground albedo rho_g,i per face and a log exposure per exposure group
+(photo) after the first:
+
+    L(theta, rho, rho_g, e) = sum_i w_i [D_i(gain_i theta, rho_i, rho_g,i) + psi_rho(rho_i)]
+                              + w_l psi_l(theta) (+ the sun-elevation prior, the negativity term),
+
+D_i face i's data term (``FaceProblem.data_term``: mean Charbonnier / mean observation), the
+model's own prior counted once, gain_i = exp(e_group(i)) multiplying the light's intensities.
+The weights w_i (summing to the number of faces) follow what each face can tell: its usable
+pixels (capped as the fit caps them) over its relative noise plus a model-misfit floor,
+n_i / (sigma_i^2 + SIGMA_MODEL^2).
+
+Sun models (capability ``compact-sun``) score every sun direction and sky shape against all the
+faces at once (``sun_search.combine``), are fitted in psi = mean apparent albedo x weight, and end
+with the sun's elevation profile, as one face is (f2l.estimate.estimator). Linear models start from
+the stacked least squares, other models from their initial points; all then run the same batched
+L-BFGS. Latent-sky models are not supported yet (``JointUnsupported``).
+
+Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found from the
+joint fit: face i's ``agreement`` is its relative residual under the joint light (with one free scale
+per channel) over its residual under the best light of its own sun search, both in the search's
+metric (``sun_search.relative_residual``). While the worst face's agreement exceeds
+``DISAGREE_RATIO`` it is left out and the rest are fitted afresh, so the result without it is the
+result of the group without that face. A group of one is :func:`f2l.estimate.estimator.estimate`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from f2l.estimate import sun_search
+from f2l.estimate.config import EstimateResult, EstimatorConfig
+from f2l.estimate.estimator import _sun_share, estimate
+from f2l.estimate.lbfgs import minimise, run_lbfgs
+from f2l.estimate.observation import EstimationError, FaceObservation, usable_pixels
+from f2l.estimate.params import BoxTransform
+from f2l.estimate.problem import FaceProblem
+from f2l.estimate.skin import skin_albedo_mean
+from f2l.estimate.sun_profile import elevation_posterior
+from f2l.lighting.grid import LatLongGrid
+from f2l.models.base import LightingModel
+from f2l.models.capabilities import LatentSky
+
+SIGMA_MODEL = 0.05  # the relative misfit of the forward model itself, added to each face's noise
+DISAGREE_RATIO = 2.0  # agreement above this: the face does not share the group's light
+LINEAR_MIN_ITERS = 50
+
+
+class JointUnsupported(EstimationError):
+    """The model cannot be estimated jointly (the message says why); estimate its faces one by one."""
+
+
+@dataclass
+class FaceShare:
+    """One face's part in a joint estimate: its weight, albedo, ground albedo and exposure gain
+    (relative to the group's first photo), its data term under the joint light, its agreement
+    (module docstring; None where not measured), whether the final fit used it and why not."""
+
+    face_id: str
+    weight: float
+    albedo: np.ndarray | None = None
+    ground_albedo: float | None = None
+    gain: float = 1.0
+    data: float | None = None
+    agreement: float | None = None
+    used: bool = True
+    reason: str = ""
+
+
+@dataclass
+class JointResult:
+    """The group's light (an :class:`EstimateResult`; its albedo is the used faces' weighted mean)
+    and each face's share, in the order given."""
+
+    result: EstimateResult
+    faces: list[FaceShare] = field(default_factory=list)
+
+
+def face_noise(obs: FaceObservation, pixel_rc: np.ndarray | None) -> float:
+    """The face's relative noise: 1.4826 MAD / sqrt(2) of the luminance differences between
+    horizontally adjacent usable pixels, over their mean luminance (0 without pixel positions)."""
+    if pixel_rc is None or len(pixel_rc) != len(obs.observed_rgb):
+        return 0.0
+    idx = usable_pixels(obs)
+    rc = np.asarray(pixel_rc, np.int64)[idx]
+    lum = np.asarray(obs.observed_rgb, np.float64)[idx] @ np.array([0.2126, 0.7152, 0.0722])
+    width = int(rc[:, 1].max()) + 2
+    key = rc[:, 0] * width + rc[:, 1]
+    order = np.argsort(key)
+    key, lum = key[order], lum[order]
+    pos = np.searchsorted(key, key + 1)
+    has = (pos < len(key)) & (key[np.minimum(pos, len(key) - 1)] == key + 1)
+    if has.sum() < 20:
+        return 0.0
+    diff = lum[pos[has]] - lum[has]
+    sigma = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / math.sqrt(2.0)
+    return sigma / max(float(lum.mean()), 1e-12)
+
+
+def face_weights(observations: list[FaceObservation], cfg: EstimatorConfig, noise: list[float]) -> np.ndarray:
+    """w_i proportional to n_i / (sigma_i^2 + SIGMA_MODEL^2), summing to the number of faces; n_i
+    the usable pixels, capped at the fit's own cap (``sun_max_pixels`` or ``max_pixels``)."""
+    cap = cfg.sun_max_pixels or cfg.max_pixels or None
+    n = np.array([usable_pixels(o, cfg.highlight_mad).size for o in observations], np.float64)
+    if cap:
+        n = np.minimum(n, cap)
+    q = n / (np.asarray(noise, np.float64) ** 2 + SIGMA_MODEL**2)
+    return len(q) * q / q.sum()
+
+
+class JointProblem:
+    """Several faces' problems under one light: the objective of the module docstring, in the
+    form the estimator's L-BFGS and elevation profile use (``objective(params, albedo, side)``,
+    albedo (B, K, 3), side (B, K + E - 1): the ground albedos, then the log gains)."""
+
+    def __init__(self, problems: list[FaceProblem], weights: np.ndarray, exposure_group: np.ndarray):
+        self.faces = problems
+        self.first = problems[0]
+        self.model, self.cfg = self.first.model, self.first.cfg
+        self.weights = [float(w) for w in weights]
+        self.group = np.asarray(exposure_group, np.int64)
+        self.num_gains = int(self.group.max())  # exposure groups after the first
+        self.hybrid = self.first.hybrid
+        self.spec = None
+        self.last_data = None
+        if self.num_gains:
+            self.intensity = intensity_mask(self.model)
+
+    @property
+    def K(self) -> int:
+        return len(self.faces)
+
+    def gains(self, side: torch.Tensor) -> torch.Tensor:
+        """(B, K) exposure gain of each face: exp of its group's log gain (the first group's is 0)."""
+        logs = torch.cat([side.new_zeros(len(side), 1), side[:, self.K :]], 1)
+        return torch.exp(logs[:, torch.as_tensor(self.group)])
+
+    def face_params(self, params: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+        """The light as face i sees it: the intensities scaled by its gain (B,)."""
+        if not self.num_gains:
+            return params
+        mask = torch.as_tensor(self.intensity)
+        return torch.where(mask[None], params * gain[:, None], params)
+
+    def objective(self, params, albedo, side):
+        """Per-start joint objective (B,) and its weighted data term (B,); keeps each face's data
+        term of the last call (``last_data``, (K, B))."""
+        total = self.first.light_prior(params)
+        gains = self.gains(side) if self.num_gains else None
+        data, per_face, rad0 = 0.0, [], None
+        for i, prob in enumerate(self.faces):
+            p_i = params if gains is None else self.face_params(params, gains[:, i])
+            d_i, rad = prob.data_term(p_i, albedo[:, i], side[:, i])
+            if i == 0:
+                rad0 = rad
+            a_i = prob.albedo_term(albedo[:, i])
+            data = data + self.weights[i] * d_i
+            total = total + self.weights[i] * (d_i if a_i is None else d_i + a_i)
+            per_face.append(d_i.detach())
+        for term in (self.first.sun_elevation_term(params), self.first.negativity_term(params, rad0)):
+            if term is not None:
+                total = total + term
+        self.last_data = torch.stack(per_face)
+        return total, data
+
+
+def intensity_mask(model: LightingModel) -> np.ndarray:
+    """Which parameters scale with the light's intensity: every coefficient of a linear model,
+    the sky and sun weights of a compact-sun one, else the non-negative parameters unbounded above
+    (as the estimator's start scaling reads them). Raises :class:`JointUnsupported` if none."""
+    from f2l.models.capabilities import CompactSun, LinearRadiance
+
+    P = len(model.param_names)
+    if isinstance(model, LinearRadiance):
+        return np.ones(P, bool)
+    if isinstance(model, CompactSun):
+        mask = np.zeros(P, bool)
+        mask[list(model.sun_layout.sky_rgb) + list(model.sun_layout.sun_rgb)] = True
+        return mask
+    lo, hi = model.bounds()
+    mask = np.isfinite(lo) & (lo >= 0) & ~np.isfinite(hi)
+    if not mask.any():
+        raise JointUnsupported(f"model {model.name!r} has no intensity parameters: faces of different photos "
+                               "(different exposures) cannot share its light")
+    return mask
+
+
+def estimate_joint(observations: list[FaceObservation], model: LightingModel, config: EstimatorConfig | None = None,
+                   exposure_group: list[int] | None = None, pixel_rc: list | None = None,
+                   disagree_ratio: float | None = DISAGREE_RATIO) -> JointResult:
+    """One light for ``observations`` (module docstring).
+
+    ``exposure_group`` (K,) ints: faces with the same number were taken with the same exposure
+    (one photo); None: all one photo. ``pixel_rc``: each face's pixel positions, for its noise.
+    ``disagree_ratio`` None keeps every face. Raises EstimationError when no face can be used."""
+    t_start = time.perf_counter()
+    cfg = config or EstimatorConfig()
+    K = len(observations)
+    if K == 0:
+        raise EstimationError("joint estimate: no faces")
+    if isinstance(model, LatentSky) and K > 1:
+        raise JointUnsupported(f"model {model.name!r} (latent-sky): joint estimation is not available for "
+                               "latent-sky models yet; estimate its faces one by one")
+    groups = _renumber(exposure_group if exposure_group is not None else [0] * K)
+    noise = [face_noise(o, None if pixel_rc is None else pixel_rc[i]) for i, o in enumerate(observations)]
+    shares = [FaceShare(face_id=o.face_id, weight=0.0) for o in observations]
+    torch.set_num_threads(max(1, cfg.threads))
+    problems: dict[int, FaceProblem] = {}
+    for i, o in enumerate(observations):
+        if K == 1:
+            break
+        try:
+            problems[i] = FaceProblem(o, model, cfg, torch.float64)
+        except EstimationError as exc:
+            shares[i].used, shares[i].reason = False, f"bad_face: {exc}"
+    active = list(range(K)) if K == 1 else sorted(problems)
+    if len(active) > 1 and problems[active[0]].hybrid is not None:  # one sun search setup for all faces
+        setup = problems[active[0]].search_setup()
+        for i in active:
+            problems[i]._setup = setup
+    if not active:
+        raise EstimationError("joint estimate: no usable face (" + "; ".join(s.reason for s in shares) + ")")
+    torch.set_num_threads(1)
+    seen_agreement: dict[int, float] = {}
+    if disagree_ratio is not None and len(active) > 1 and problems[active[0]].hybrid is not None:
+        support = _consensus(problems, active, cfg, disagree_ratio)
+        for i in active:
+            if support[i] > disagree_ratio:
+                shares[i].used = False
+                shares[i].reason = (f"disagrees with the group's light: residual {support[i]:.2f}x its own best under "
+                                    f"the light most faces agree with (limit {disagree_ratio:.2f}); left out")
+        active = [i for i in active if support[i] <= disagree_ratio]
+    while True:
+        result, fit = _fit_group([observations[i] for i in active], [problems.get(i) for i in active], model, cfg,
+                                 [noise[i] for i in active], groups[active])
+        agreement = _agreements(problems, fit, cfg) if fit is not None else {}
+        seen_agreement.update(agreement)
+        worst = max(active, key=lambda i: agreement.get(i, 0.0))
+        if disagree_ratio is not None and len(active) > 1 and agreement.get(worst, 0.0) > disagree_ratio:
+            shares[worst].used = False
+            shares[worst].reason = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
+                                    f"(limit {disagree_ratio:.2f}); left out")
+            active = [i for i in active if i != worst]
+            continue
+        break
+    for i, s in enumerate(shares):
+        s.agreement = seen_agreement.get(i)
+    if fit is None:  # one face left: its own estimate
+        shares[active[0]].weight = 1.0
+        shares[active[0]].albedo, shares[active[0]].ground_albedo = result.albedo, result.ground_albedo
+    else:
+        for j, i in enumerate(active):
+            s = shares[i]
+            s.weight, s.albedo, s.ground_albedo = fit.weights[j], fit.albedo[j], fit.ground[j]
+            s.gain, s.data = fit.gain[j], fit.data[j]
+    result.runtime_s = time.perf_counter() - t_start
+    result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
+    return JointResult(result, shares)
+
+
+def _renumber(groups) -> np.ndarray:
+    """Exposure groups as 0, 1, ... in order of first appearance (the first face's group is 0)."""
+    seen: dict = {}
+    return np.array([seen.setdefault(g, len(seen)) for g in groups], np.int64)
+
+
+@dataclass
+class _Fit:
+    """What the agreement test and the face rows need of a joint fit (keyed by face index)."""
+
+    weights: list[float]
+    params: np.ndarray
+    albedo: dict
+    ground: dict
+    gain: dict
+    data: dict
+    index: list[int]
+
+
+def _fit_group(observations, problems, model, cfg: EstimatorConfig, noise, groups) -> tuple[EstimateResult, _Fit | None]:
+    """The joint fit of one set of faces; a set of one is the single-face estimate (bit for bit)."""
+    if len(observations) == 1:
+        return estimate(observations[0], model, cfg), None
+    t_start = time.perf_counter()
+    weights = face_weights(observations, cfg, noise)
+    jp = JointProblem(problems, weights, _renumber(groups))
+    return _fit(jp, model, cfg, t_start, [o.face_id for o in observations])
+
+
+def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids) -> tuple[EstimateResult, _Fit]:
+    dtype = torch.float64
+    first, K = jp.first, jp.K
+    if jp.hybrid is not None:  # a fit before may have dropped the exact sun core (an overcast group)
+        for p in jp.faces:
+            p.hybrid.core_texels = cfg.sun_core_texels
+    lo, hi = model.bounds()
+    rho_start = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), np.float64)
+    t_search = time.perf_counter()
+    weight_idx = None
+    if jp.hybrid is not None:
+        setup = _setup(first)
+        scores = [_scores(p, setup, cfg) for p in jp.faces]
+        found = sun_search.pick(sun_search.combine(scores, np.asarray(jp.weights)), first.grid)
+        theta0 = first.starts_from(found, setup[1], rho_start)
+        lo, hi = lo.copy(), hi.copy()
+        lo[model.sun_layout.azimuth], hi[model.sun_layout.azimuth] = -np.inf, np.inf
+        weight_idx = list(model.sun_layout.sky_rgb) + list(model.sun_layout.sun_rgb)
+        theta0[:, weight_idx] *= np.tile(first.apparent(rho_start), 2)
+    elif first.linear:
+        theta0 = _stacked_least_squares(jp, rho_start, cfg.ground_albedo_init)[None]
+    else:
+        theta0 = np.asarray(model.initial_points(), np.float64)
+    search_s = time.perf_counter() - t_search
+    box = BoxTransform(lo, hi)
+    B = len(theta0)
+    rho0 = np.clip(rho_start, 1e-3, 1 - 1e-3)
+    g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
+    x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
+    x_rho = torch.tensor(np.broadcast_to(np.log(rho0) - np.log1p(-rho0), (B, K, 3)).copy(), dtype=dtype)
+    log_gain0 = _initial_log_gains(jp, scores, found) if jp.hybrid is not None and jp.num_gains else np.zeros(jp.num_gains)
+    x_side = torch.tensor(np.concatenate([np.full((B, K), np.log(g0) - np.log1p(-g0)),
+                                          np.broadcast_to(log_gain0, (B, jp.num_gains))], 1), dtype=dtype)
+    fixed_rho = None if cfg.fixed_albedo is None else torch.as_tensor(rho0, dtype=dtype)
+
+    def unpack(x_theta, x_side, x_rho):
+        params = box.to_params(x_theta)
+        rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(x_theta), K, 3)
+        if weight_idx is not None:  # psi = the faces' mean apparent albedo x weight
+            seen = jp.first.apparent(rho).mean(1).repeat(1, 2)
+            params = params.index_copy(1, torch.as_tensor(weight_idx), params[:, weight_idx] / seen)
+        side = torch.cat([torch.sigmoid(x_side[:, :K]), x_side[:, K:]], 1)
+        return params, rho, side
+
+    if not first.linear and jp.hybrid is None:  # scale the model's starts to the observations
+        with torch.no_grad():
+            params, rho, side = unpack(x_theta, x_side, x_rho)
+            ratios = []
+            for i, p in enumerate(jp.faces):
+                tl, _ = p.light_transport(params, side[:, i])
+                pred = (p.apparent(rho[:, i])[:, None, :] * tl).mean((1, 2)).numpy()
+                ratios.append(p.target_scale / np.maximum(pred, 1e-12))
+        theta0 = theta0.copy()
+        intensity = np.isfinite(lo) & (lo >= 0) & ~np.isfinite(hi)
+        theta0[:, intensity] *= np.mean(ratios, axis=0)[:, None]
+        x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
+
+    t_fit = time.perf_counter()
+    variables = (x_theta, x_side, x_rho)
+    budget = max(cfg.max_iter, LINEAR_MIN_ITERS) if first.linear else cfg.max_iter
+    iterations, sun_core = 0, 1.0 if jp.hybrid is not None else 0.0
+    if jp.hybrid is not None and B > 1 and 0 < cfg.sun_all_starts_iters < budget:
+        variables, its = run_lbfgs(jp, unpack, variables, cfg, cfg.sun_all_starts_iters)
+        iterations, budget = iterations + its, budget - its
+        with torch.no_grad():
+            total, _ = jp.objective(*unpack(*variables))
+        keep = int(np.nanargmin(total.numpy()))
+        variables = tuple(v[keep : keep + 1].clone() for v in variables)
+        if cfg.sun_core_min_share > 0:
+            with torch.no_grad():
+                share = _sun_share(model, unpack(*variables)[0][0].numpy())
+            if share < cfg.sun_core_min_share:
+                for p in jp.faces:
+                    p.hybrid.core_texels = 0
+                sun_core = 0.0
+    if jp.hybrid is not None:
+        variables, its = run_lbfgs(jp, unpack, variables, cfg, budget)
+    else:
+        variables, its = minimise(lambda *v: jp.objective(*unpack(*v)), variables, budget, cfg.tolerance,
+                                  frozen=() if cfg.fixed_albedo is None else (2,))
+    iterations += its
+    converged = its < budget
+    with torch.no_grad():
+        params, rho, side = unpack(*variables)
+        total, _ = jp.objective(params, rho, side)
+    fit_s = time.perf_counter() - t_fit
+    totals = total.numpy()
+    if not np.isfinite(totals).any():
+        raise EstimationError("joint optimisation diverged: objective is not finite for any start")
+    best = int(np.nanargmin(totals))
+    profile_s, sun_direction, mix = 0.0, None, None
+    if jp.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
+        t_profile = time.perf_counter()
+        post = elevation_posterior(jp, unpack, variables, (params, rho, side, totals, None), best, cfg, model)
+        if post is not None:
+            params, rho, side, totals = post.params, post.albedo, post.ground_albedo, post.totals
+            best, mix, sun_direction = post.best, post.weights, post.sun_direction
+        profile_s = time.perf_counter() - t_profile
+    with torch.no_grad():
+        _, _ = jp.objective(params[best : best + 1], rho[best : best + 1], side[best : best + 1])
+        per_face = jp.last_data[:, 0].numpy()
+        w = torch.as_tensor(jp.weights, dtype=dtype)
+        chosen = [best] if mix is None else list(range(len(totals)))
+        rads = first.radiance(params[chosen]).clone()
+        if first.sky:
+            rho_g = (side[chosen][:, :K] * w).sum(1) / w.sum()  # the faces' weighted ground albedo
+            e_h = (first.e_sky[None, :, None] * rads[:, : first.L_sky]).sum(1)
+            rads[:, first.L_sky :] = rho_g[:, None, None] / np.pi * e_h[:, None, :]
+        rads = rads.clamp_min(0.0)
+        rad = rads[0] if mix is None else torch.einsum("b,blc->lc", torch.as_tensor(mix, dtype=rads.dtype), rads)
+    grid = first.grid
+    probe = rad.numpy().reshape(grid.height, grid.width, 3).astype(np.float32)
+    if not np.isfinite(probe).all():
+        raise EstimationError("joint estimate: probe is not finite")
+    best_np = params[best].numpy().astype(np.float64)
+    if sun_direction is None:
+        sun_direction = model.sun_direction(best_np)
+    gains = jp.gains(side[best : best + 1])[0].numpy() if jp.num_gains else np.ones(K)
+    albedo = rho[best].numpy().astype(np.float64)
+    wn = np.asarray(jp.weights) / np.sum(jp.weights)
+    runtime = time.perf_counter() - t_start
+    result = EstimateResult(
+        params=best_np, param_names=list(model.param_names), albedo=(wn[:, None] * albedo).sum(0),
+        ground_albedo=float((wn * side[best, :K].numpy()).sum()) if first.sky else None,
+        loss=float(totals[best]), iterations=iterations, converged=bool(converged), runtime_s=runtime,
+        probe=probe, sun_direction=sun_direction,
+        timings={"precompute_s": sum(p.precompute_s for p in jp.faces), "search_s": search_s, "fit_s": fit_s,
+                 "profile_s": profile_s, "total_s": runtime, "sun_core": sun_core},
+        start_losses=[float(v) for v in totals], num_pixels_used=int(sum(p.idx.size for p in jp.faces)))
+    index = list(range(K))
+    fit = _Fit(weights=list(jp.weights), params=best_np, albedo=dict(zip(index, albedo)),
+               ground=dict(zip(index, side[best, :K].numpy().astype(float) if first.sky else [None] * K)),
+               gain=dict(zip(index, gains.astype(float))), data=dict(zip(index, per_face.astype(float))), index=index)
+    fit.problems = jp.faces
+    return result, fit
+
+
+def _initial_log_gains(jp: JointProblem, scores, found) -> np.ndarray:
+    """Each later exposure group's log gain from the search: the mean log of its faces' psi (sky +
+    sun, at the best joint candidate) over the first group's."""
+    best = found[0]
+    k = int(np.flatnonzero(scores[0].texels == best.texel)[0])
+    level = np.array([float(np.log(max((s.psi_sky[k, best.shape] + s.psi_sun[k, best.shape]).mean(), 1e-300)))
+                      for s in scores])
+    base = level[jp.group == 0].mean()
+    return np.array([level[jp.group == e].mean() - base for e in range(1, jp.num_gains + 1)])
+
+
+def _stacked_least_squares(jp: JointProblem, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
+    """theta minimising sum_i (w_i / scale_i^2) ||rho ⊙ (A_i theta) - s_i*||^2 (small ridge), for a
+    linear model (the single face's ``least_squares_start`` over the stacked faces)."""
+    lhs, rhs = 0.0, 0.0
+    for w, p in zip(jp.weights, jp.faces):
+        A = p.TB.numpy()
+        if p.sky:
+            A = A + p.g.numpy()[:, None] * (ground_albedo / np.pi) * p.eB.numpy()[None, :]
+        c = w / p.target_scale**2
+        lhs = lhs + c * (A.T @ A)
+        rhs = rhs + c * (A.T @ (p.target.numpy() / p.apparent(albedo)[None, :]))
+    ridge = 1e-8 * np.trace(lhs) / lhs.shape[1]
+    return np.linalg.solve(lhs + ridge * np.eye(lhs.shape[1]), rhs).reshape(-1)
+
+
+def _agreements(problems: dict[int, FaceProblem], fit: _Fit, cfg: EstimatorConfig) -> dict[int, float]:
+    """Each face's agreement with the fit's light (module docstring): {face index: ratio} for the
+    faces the fit used (by their index in ``fit``) and every other problem given. Compact-sun
+    models only; empty for others."""
+    fitted = fit.problems
+    if fitted[0].hybrid is None:
+        return {}
+    first = fitted[0]
+    model, grid = first.model, first.grid
+    params = torch.as_tensor(fit.params[None])
+    with torch.no_grad():
+        sky, w_sky, sun = model.light_parts(params)
+        m_unit, _ = first.hybrid.sky_summary(sky, first.e_sky)
+    layout = model.sun_layout
+    w_sun = fit.params[list(layout.sun_rgb)]
+    direction = model.sun_direction(fit.params)
+    texel = _nearest_texel(grid, direction)
+    out = {}
+    for i, p in problems.items():
+        out[i] = _ratio(p, texel, m_unit[0].numpy(), w_sky[0].numpy(), w_sun, cfg)
+    return out
+
+
+def _setup(p: FaceProblem):
+    """The sun search's candidates (``FaceProblem.search_setup``), made once for the faces of one
+    grid, model and config and kept on the first problem that asks."""
+    if getattr(p, "_setup", None) is None:
+        p._setup = p.search_setup()
+    return p._setup
+
+
+def _scores(p: FaceProblem, setup, cfg: EstimatorConfig):
+    """The face's search scores (``FaceProblem.search_scores``), computed once per problem."""
+    if getattr(p, "_scores", None) is None:
+        p._scores = p.search_scores(setup, cfg.ground_albedo_init)
+    return p._scores
+
+
+def _consensus(problems: dict[int, FaceProblem], active: list[int], cfg: EstimatorConfig,
+               limit: float) -> dict[int, float]:
+    """Each face's ratio under the light most faces agree with, before any joint fit.
+
+    Every face's own best light of the search (sun texel, sky shape and psi, or the sun-less sky)
+    is tried on every face (``sun_search.relative_residual`` over the face's own best residual):
+    the light under which most faces stay within ``limit`` wins (ties: the lower mean ratio). A
+    face in another's shadow cannot pull the joint fit's sun away before it is found."""
+    setup = _setup(problems[active[0]])
+    texels, _, sky_blocks, _ = setup
+    lights = {}
+    for i in active:
+        sc = _scores(problems[i], setup, cfg)
+        flat = int(np.argmin(sc.total))
+        k, shape = divmod(flat, sc.total.shape[1])
+        if float(sc.sky_total.min()) < float(sc.total.flat[flat]):
+            k, shape = divmod(int(np.argmin(sc.sky_total)), sc.total.shape[1])
+            lights[i] = (int(texels[k]), sky_blocks[k, shape], sc.sky_psi[k, shape], np.zeros(3))
+        else:
+            lights[i] = (int(texels[k]), sky_blocks[k, shape], sc.psi_sky[k, shape], sc.psi_sun[k, shape])
+    ratio = {}
+    for i in active:
+        texel, blocks, w_sky, w_sun = lights[i]
+        ratio[i] = {j: _ratio(problems[j], texel, blocks, w_sky, w_sun, cfg) for j in active}
+    best = min(active, key=lambda i: (-sum(r <= limit for r in ratio[i].values()), float(np.mean(list(ratio[i].values())))))
+    return ratio[best]
+
+
+def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: EstimatorConfig) -> float:
+    """The face's relative residual under one light over its own best's (``_own_best``)."""
+    rel = sun_search.relative_residual(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
+                                       p.grid, texel, np.asarray(sky_block_means), _e_blocks(p), cfg.ground_albedo_init,
+                                       np.asarray(w_sky), np.asarray(w_sun))
+    return rel / max(_own_best(p, cfg), 1e-12)
+
+
+def _nearest_texel(grid: LatLongGrid, direction: np.ndarray) -> int:
+    """The sky texel whose direction is nearest to ``direction`` (kept above the horizon row)."""
+    d = np.asarray(direction, np.float64)
+    lu = grid.sky_rows * grid.width
+    return int(np.argmax(grid.directions_flat[:lu] @ d))
+
+
+def _e_blocks(p: FaceProblem) -> np.ndarray:
+    nb = p.hybrid.t_blk.shape[1]
+    return np.bincount(p.hybrid.block_of, weights=p.e_sky.numpy(), minlength=nb)
+
+
+def _own_best(p: FaceProblem, cfg: EstimatorConfig) -> float:
+    """The face's residual under the best light of its own sun search (relative, as
+    ``sun_search.relative_residual``), computed once per problem."""
+    s = _scores(p, _setup(p), cfg)
+    return min(float(s.total.min()), float(s.sky_total.min())) / max(s.yy, 1e-300)

@@ -1,0 +1,164 @@
+"""The joint estimate (f2l.estimate.joint): one light for several faces of one photo or session.
+
+Faces are f2l's own Lambertian renders (f2l.synth.render) under one clear sky, turned different
+ways; a "shaded" face is rendered under the same sky with its sun taken away (a face in another's
+shadow). Checks: a group of one is the single estimate bit for bit; three faces recover the sun;
+the shaded face is left out, and the group without it is the group that never had it; an
+exposure difference between photos comes back as the face's gain; every built-in kind of model
+runs or says why not; the command line writes one probe per photo and a row per face.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from f2l.estimate import EstimatorConfig, FaceObservation, estimate
+from f2l.estimate.joint import DISAGREE_RATIO, JointUnsupported, estimate_joint, face_noise
+from f2l.lighting.grid import LatLongGrid, direction_from_angles
+from f2l.models import load_model
+from tests.plugin_helpers import f2l_cmd
+
+GRID = LatLongGrid(32, 64)
+SUN_EL, SUN_AZ = math.radians(35.0), math.radians(50.0)
+SUN = direction_from_angles(SUN_EL, SUN_AZ)
+CFG = EstimatorConfig(sun_prior_from_capture=False, skin_gloss=0.0)
+
+
+def _angle_deg(a, b) -> float:
+    return math.degrees(math.acos(float(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def skies():
+    from f2l.synth.skies import clear_sky
+
+    sunny = clear_sky(GRID, SUN_EL, SUN_AZ)
+    shade = sunny.copy()
+    near_sun = GRID.directions_flat @ SUN > math.cos(math.radians(12.0))
+    sky = shade.reshape(-1, 3)
+    sky[near_sun] = np.median(sky[: GRID.sky_rows * GRID.width], axis=0)
+    return sunny, shade
+
+
+@pytest.fixture(scope="module")
+def faces(skies):
+    """Four rendered faces: three in the sun (yaw -30, 5, 35 deg), one in the shade."""
+    from f2l.synth.render import render_face
+
+    sunny, shade = skies
+    out = []
+    for i, (yaw, probe) in enumerate([(-30.0, sunny), (5.0, sunny), (35.0, sunny), (-10.0, shade)]):
+        rng = np.random.default_rng(10 + i)
+        out.append(render_face(GRID, probe, rng, image_size=72, head_pose_deg=(yaw, -4.0, 2.0), noise_sigma=0.004))
+    return out
+
+
+def _obs(face, name, gain=1.0):
+    return FaceObservation(face.normals, np.asarray(face.observed_rgb, np.float64) * gain, face.mask,
+                           face.visibility_bits, GRID, name, face.points)
+
+
+@pytest.fixture(scope="module")
+def sunsky():
+    return load_model("sunsky", GRID)
+
+
+def test_a_group_of_one_is_the_single_estimate_bit_for_bit(faces, sunsky):
+    single = estimate(_obs(faces[0], "a"), sunsky, CFG)
+    joint = estimate_joint([_obs(faces[0], "a")], sunsky, CFG)
+    assert np.array_equal(joint.result.params, single.params)
+    assert np.array_equal(joint.result.probe, single.probe)
+    assert joint.faces[0].used and joint.faces[0].weight == 1.0
+
+
+def test_three_faces_under_one_sky_recover_its_sun(faces, sunsky):
+    joint = estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:3])], sunsky, CFG)
+    assert all(s.used for s in joint.faces)
+    assert all(s.agreement is not None and s.agreement < DISAGREE_RATIO for s in joint.faces)
+    assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
+    assert np.isfinite(joint.result.probe).all() and joint.result.probe.min() >= 0.0
+    weights = [s.weight for s in joint.faces]
+    assert sum(weights) == pytest.approx(3.0) and min(weights) > 0.3
+
+
+def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(faces, sunsky):
+    observations = [_obs(f, str(i)) for i, f in enumerate(faces)]
+    joint = estimate_joint(observations, sunsky, CFG)
+    shaded = joint.faces[3]
+    assert not shaded.used and "disagrees" in shaded.reason and shaded.agreement > DISAGREE_RATIO
+    assert all(s.used for s in joint.faces[:3])
+    without = estimate_joint(observations[:3], sunsky, CFG)
+    assert np.array_equal(joint.result.params, without.result.params)
+    assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
+    kept = estimate_joint(observations, sunsky, CFG, disagree_ratio=None)
+    assert all(s.used for s in kept.faces)  # the check can be turned off
+
+
+def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):
+    """A photo 2.5x darker: its face's exposure x albedo (all the data can tell apart) comes out
+    0.4x that of the same face in the first photo (channel mean, within 12%), and the sun holds."""
+    same = estimate_joint([_obs(f, n) for f, n in zip(faces[:3], "abc")], sunsky, CFG)
+    observations = [_obs(faces[0], "a"), _obs(faces[1], "b", gain=0.4), _obs(faces[2], "c")]
+    joint = estimate_joint(observations, sunsky, CFG, exposure_group=["p1", "p2", "p1"])
+    assert joint.faces[0].gain == 1.0 and joint.faces[2].gain == 1.0
+    seen = lambda s: s.gain * float(np.mean(s.albedo))  # noqa: E731
+    assert seen(joint.faces[1]) / seen(joint.faces[0]) == pytest.approx(
+        0.4 * seen(same.faces[1]) / seen(same.faces[0]), rel=0.12)
+    assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
+
+
+def test_linear_models_share_one_light_and_latent_skies_say_why_not(faces):
+    sh9 = load_model("sh9", GRID)
+    joint = estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:3])], sh9, CFG)
+    assert np.isfinite(joint.result.probe).all() and joint.result.params.shape == (27,)
+    assert all(s.albedo is not None and np.all((s.albedo > 0) & (s.albedo < 1)) for s in joint.faces)
+    ae = load_model("ae", GRID)
+    with pytest.raises(JointUnsupported, match="latent-sky"):
+        estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:2])], ae, CFG)
+
+
+def test_face_noise_reads_the_noise_of_a_flat_patch():
+    rng = np.random.default_rng(0)
+    rr, cc = np.mgrid[0:40, 0:40]
+    rc = np.stack([rr.ravel(), cc.ravel()], 1)
+    rgb = 0.5 + rng.normal(0, 0.01, (len(rc), 3))
+    obs = FaceObservation(np.tile([0.0, 0.0, 1.0], (len(rc), 1)), rgb, np.ones(len(rc), bool),
+                          np.zeros((len(rc), 1), np.uint8), GRID)
+    lum_sigma = 0.01 * math.sqrt(0.2126**2 + 0.7152**2 + 0.0722**2)
+    assert face_noise(obs, rc) == pytest.approx(lum_sigma / 0.5, rel=0.15)
+    assert face_noise(obs, None) == 0.0
+
+
+def test_cli_writes_one_probe_per_photo_and_a_row_per_face(small_shards, tmp_path):
+    """Two records of one photo (the same source_path) share a probe; --joint none keeps them apart."""
+    from f2l.io.shards import ShardWriter, iter_records
+
+    records = [r for r in iter_records(small_shards)][:3]
+    records[1].source_path = records[0].source_path  # faces 0 and 1: one photo
+    shard = tmp_path / "shard"
+    writer = ShardWriter(shard)
+    for r in records:
+        writer.write(r)
+    writer.close()
+    out = tmp_path / "est"
+    res = subprocess.run(f2l_cmd("estimate", str(shard), "-m", "sunsky", "--out", str(out), "--skin-gloss", "0",
+                                 "--json", "--also-single"), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["joint"] == "photo" and summary["single"]["ok"] == 3
+    rows = {r["face_id"]: r for r in pq.read_table(out / "estimates.parquet").to_pylist()}
+    a, b, c = (rows[r.face_id] for r in records)
+    assert a["status"] == b["status"] == c["status"] == "ok"
+    assert a["group_id"] == b["group_id"] != c["group_id"] and a["group_size"] == 2 and c["group_size"] == 1
+    if a["group_used"] and b["group_used"]:
+        assert a["probe_path"] == b["probe_path"] and a["probe_path"].startswith("probes/sunsky/group-")
+    assert (out / a["probe_path"]).is_file() and c["agreement"] is None
+    single = {r["face_id"]: r for r in pq.read_table(out / "single" / "estimates.parquet").to_pylist()}
+    assert single[records[2].face_id]["params"] == c["params"]  # a face alone: the same estimate
+    assert single[records[0].face_id]["group_id"] == ""
