@@ -207,3 +207,24 @@ def eval_framings_cmd(
         write_text_atomic(Path(out) / "accuracy_by_face_width.md", result["table"] + "\n")
         write_text_atomic(Path(out) / "accuracy_by_face_width.json", json.dumps(result["rows"], indent=1))
     typer.echo(json.dumps(result["rows"]) if json_out else result["table"])
+
+
+def eval_groups_cmd(
+    render_dirs: list[Path] = typer.Argument(..., help="`f2l eval render-faces --framing group` folders."),
+    fitted: Path = typer.Option(..., "--fitted", help="`f2l fit-faces` of their photos."),
+    model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
+    sizes: list[int] = typer.Option([1, 2, 3, 5], "--faces", help="Group sizes to score (repeatable)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write groups.md and groups.json here."),
+    json_out: JsonOut = False,
+) -> None:
+    """Error against the number of faces: each photo's first n faces estimated one at a time and jointly (one light), scored against the true probe (§5.1 metrics), with the time of each."""
+    from f2l.evaluation.groups import group_rows, group_table, write_group_report
+
+    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
+    if missing:
+        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    rows = group_rows(render_dirs, fitted, model, tuple(sizes),
+                      progress=None if json_out else (lambda r: typer.echo(
+                          f"{r['case']} n={r['n']}: Sun-ang {r['single'][0]:.1f} -> {r['joint'][0]:.1f}", err=True)))
+    text = write_group_report(rows, out) if out is not None else group_table(rows)
+    typer.echo(json.dumps(rows) if json_out else text)
