@@ -208,8 +208,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     if K == 0:
         raise EstimationError("joint estimate: no faces")
     if isinstance(model, LatentSky) and K > 1:
-        raise JointUnsupported(f"model {model.name!r} (latent-sky): joint estimation is not available for "
-                               "latent-sky models yet; estimate its faces one by one")
+        return _latent_joint(observations, model, cfg, exposure_group, pixel_rc, disagree_ratio)
     groups = _renumber(exposure_group if exposure_group is not None else [0] * K)
     noise = [face_noise(o, None if pixel_rc is None else pixel_rc[i]) for i, o in enumerate(observations)]
     shares = [FaceShare(face_id=o.face_id, weight=0.0) for o in observations]
@@ -265,6 +264,17 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     result.runtime_s = time.perf_counter() - t_start
     result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
     return JointResult(result, shares)
+
+
+def _latent_joint(observations, model, cfg, exposure_group, pixel_rc, disagree_ratio) -> JointResult:
+    """Latent-sky models (capability ``latent-sky``): f2l.estimate.latent_joint where present."""
+    try:
+        from f2l.estimate.latent_joint import estimate_joint_latent
+    except ImportError:
+        raise JointUnsupported(f"model {model.name!r} (latent-sky): joint estimation is not available for "
+                               "latent-sky models yet; estimate its faces one by one") from None
+    return estimate_joint_latent(observations, model, cfg, exposure_group=exposure_group, pixel_rc=pixel_rc,
+                                 disagree_ratio=disagree_ratio)
 
 
 def _renumber(groups) -> np.ndarray:
