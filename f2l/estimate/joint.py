@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -40,8 +40,10 @@ import torch
 from f2l.estimate import sun_search
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import _sun_share, estimate
+from f2l.estimate.joint_common import (DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult, JointUnsupported,  # noqa: F401
+                                       face_noise, face_weights)
 from f2l.estimate.lbfgs import minimise, run_lbfgs
-from f2l.estimate.observation import EstimationError, FaceObservation, usable_pixels
+from f2l.estimate.observation import EstimationError, FaceObservation
 from f2l.estimate.params import BoxTransform
 from f2l.estimate.problem import FaceProblem
 from f2l.estimate.skin import skin_albedo_mean
@@ -50,71 +52,7 @@ from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
-SIGMA_MODEL = 0.05  # the relative misfit of the forward model itself, added to each face's noise
-DISAGREE_RATIO = 2.0  # agreement above this: the face does not share the group's light
 LINEAR_MIN_ITERS = 50
-
-
-class JointUnsupported(EstimationError):
-    """The model cannot be estimated jointly (the message says why); estimate its faces one by one."""
-
-
-@dataclass
-class FaceShare:
-    """One face's part in a joint estimate: its weight, albedo, ground albedo and exposure gain
-    (relative to the group's first photo), its data term under the joint light, its agreement
-    (module docstring; None where not measured), whether the final fit used it and why not."""
-
-    face_id: str
-    weight: float
-    albedo: np.ndarray | None = None
-    ground_albedo: float | None = None
-    gain: float = 1.0
-    data: float | None = None
-    agreement: float | None = None
-    used: bool = True
-    reason: str = ""
-
-
-@dataclass
-class JointResult:
-    """The group's light (an :class:`EstimateResult`; its albedo is the used faces' weighted mean)
-    and each face's share, in the order given."""
-
-    result: EstimateResult
-    faces: list[FaceShare] = field(default_factory=list)
-
-
-def face_noise(obs: FaceObservation, pixel_rc: np.ndarray | None) -> float:
-    """The face's relative noise: 1.4826 MAD / sqrt(2) of the luminance differences between
-    horizontally adjacent usable pixels, over their mean luminance (0 without pixel positions)."""
-    if pixel_rc is None or len(pixel_rc) != len(obs.observed_rgb):
-        return 0.0
-    idx = usable_pixels(obs)
-    rc = np.asarray(pixel_rc, np.int64)[idx]
-    lum = np.asarray(obs.observed_rgb, np.float64)[idx] @ np.array([0.2126, 0.7152, 0.0722])
-    width = int(rc[:, 1].max()) + 2
-    key = rc[:, 0] * width + rc[:, 1]
-    order = np.argsort(key)
-    key, lum = key[order], lum[order]
-    pos = np.searchsorted(key, key + 1)
-    has = (pos < len(key)) & (key[np.minimum(pos, len(key) - 1)] == key + 1)
-    if has.sum() < 20:
-        return 0.0
-    diff = lum[pos[has]] - lum[has]
-    sigma = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / math.sqrt(2.0)
-    return sigma / max(float(lum.mean()), 1e-12)
-
-
-def face_weights(observations: list[FaceObservation], cfg: EstimatorConfig, noise: list[float]) -> np.ndarray:
-    """w_i proportional to n_i / (sigma_i^2 + SIGMA_MODEL^2), summing to the number of faces; n_i
-    the usable pixels, capped at the fit's own cap (``sun_max_pixels`` or ``max_pixels``)."""
-    cap = cfg.sun_max_pixels or cfg.max_pixels or None
-    n = np.array([usable_pixels(o, cfg.highlight_mad).size for o in observations], np.float64)
-    if cap:
-        n = np.minimum(n, cap)
-    q = n / (np.asarray(noise, np.float64) ** 2 + SIGMA_MODEL**2)
-    return len(q) * q / q.sum()
 
 
 class JointProblem:
