@@ -171,7 +171,13 @@ class LatentSkyProblem:
     def search(self, ground_albedo: float, refine: int = SEARCH_REFINE) -> list[dict]:
         """Every (code, azimuth) scored through the block transport, the best ``refine`` again
         through the full one (module docstring); best first."""
-        codes, sky = self.candidate_skies()
+        return self.refine_search(self.coarse_scores(ground_albedo), ground_albedo, refine)
+
+    @torch.no_grad()
+    def coarse_scores(self, ground_albedo: float) -> torch.Tensor:
+        """(K, A) coarse score of every search code at every azimuth (step half a block): the mean
+        absolute residual / scale of its least-squares psi through T_blk (+ ground), on a pixel subset."""
+        _, sky = self.candidate_skies()
         K = sky.shape[0]
         half = BLOCK[1] // 2
         shifts = torch.stack([self.block_means(sky), self.block_means(torch.roll(sky, half, dims=-1))], 1)
@@ -182,17 +188,48 @@ class LatentSkyProblem:
         tl = (rolled.reshape(K * A * 3, -1) @ self.t_blk[sub].T).reshape(K, A, 3, -1)
         rho_g = torch.full((K,), ground_albedo)
         tl = tl + self.ground(sky, rho_g)[:, None, :, sub]
-        psi, score = self._psi_score(tl, self.target[:, sub], self.target_scale)  # (K, A, 3), (K, A)
+        return self._psi_score(tl, self.target[:, sub], self.target_scale)[1]  # (K, A)
+
+    def rotated_candidates(self, k_idx: list[int], j_idx: list[int]) -> torch.Tensor:
+        """(R, 3, rows, W) the cached search skies of codes ``k_idx`` at azimuth indices ``j_idx``."""
+        _, sky = self.candidate_skies()
+        half = BLOCK[1] // 2
+        return torch.stack([torch.roll(sky[k], int(j) * half, dims=-1) for k, j in zip(k_idx, j_idx)])
+
+    @torch.no_grad()
+    def full_scores(self, sky: torch.Tensor, ground_albedo: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Least-squares psi (R, 3) and score (R,) of skies (R, 3, rows, W) through the full transport."""
+        return self._psi_score(self.transport(sky, torch.full((sky.shape[0],), ground_albedo)),
+                               self.target, self.target_scale)
+
+    def search_azimuth(self, j: int) -> float:
+        """The azimuth (radians, in [-pi, pi)) of the search's azimuth index ``j``."""
+        step = 2.0 * math.pi / self.width * (BLOCK[1] // 2)
+        return float(((int(j) * step + math.pi) % (2 * math.pi)) - math.pi)
+
+    @torch.no_grad()
+    def refine_search(self, score: torch.Tensor, ground_albedo: float, refine: int = SEARCH_REFINE) -> list[dict]:
+        """The best ``refine`` candidates of a (K, A) coarse score scored through the full
+        transport (``search``), as dicts (k, code, azimuth, psi, score, coarse_score); best first."""
+        codes, _ = self.candidate_skies()
+        A = score.shape[1]
         best = torch.argsort(score.reshape(-1))[:refine]
         k_idx, j_idx = best // A, best % A
-        rotated = torch.stack([torch.roll(sky[k], int(j) * half, dims=-1) for k, j in zip(k_idx.tolist(), j_idx.tolist())])
-        psi2, score2 = self._psi_score(self.transport(rotated, torch.full((len(best),), ground_albedo)),
-                                       self.target, self.target_scale)
-        step = 2.0 * math.pi / self.width * half
-        out = [{"k": int(k), "code": codes[int(k)], "azimuth": float(((int(j) * step + math.pi) % (2 * math.pi)) - math.pi),
+        psi2, score2 = self.full_scores(self.rotated_candidates(k_idx.tolist(), j_idx.tolist()), ground_albedo)
+        out = [{"k": int(k), "code": codes[int(k)], "azimuth": self.search_azimuth(j),
                 "psi": psi2[i].numpy().astype(np.float64), "score": float(score2[i]), "coarse_score": float(score[k, j])}
                for i, (k, j) in enumerate(zip(k_idx.tolist(), j_idx.tolist()))]
         return sorted(out, key=lambda c: c["score"])
+
+    def data_term(self, sky: torch.Tensor, psi: torch.Tensor, ground_albedo: torch.Tensor) -> torch.Tensor:
+        """(B,) mean Charbonnier(psi ⊙ T l - s*) / mean(s*) of skies (B, 3, rows, W), psi (B, 3)
+        and ground albedos (B,), plus the clipped pixels' term (``clipped_term``) on the same scale."""
+        tl = self.transport(sky, ground_albedo)
+        r = psi[:, :, None] * tl - self.target[None]
+        data = torch.sqrt(r * r + self.cfg.charbonnier_eps**2).mean((1, 2)) / self.target_scale
+        if self.clip is not None:
+            data = data + self.clipped_term(sky, psi, ground_albedo) / (r.shape[1] * r.shape[2] * self.target_scale)
+        return data
 
 
 def pick_starts(candidates: list[dict], n: int) -> list[dict]:
@@ -251,12 +288,7 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
 
     def objective(zs, phi, logpsi, u, xg):
         psi, rho, _, rho_g = unpack(zs, phi, logpsi, u, xg)
-        sky = prob.shape_sky(zs, phi)
-        tl = prob.transport(sky, rho_g)
-        r = psi[:, :, None] * tl - prob.target[None]
-        data = torch.sqrt(r * r + cfg.charbonnier_eps**2).mean((1, 2)) / prob.target_scale
-        if prob.clip is not None:
-            data = data + prob.clipped_term(sky, psi, rho_g) / (r.shape[1] * r.shape[2] * prob.target_scale)
+        data = prob.data_term(prob.shape_sky(zs, phi), psi, rho_g)
         total = data + cfg.light_prior_weight * model.code_prior_nll(zs)
         if fixed is None:
             total = total + cfg.albedo_prior_weight * albedo_prior_nll(rho)
