@@ -210,13 +210,14 @@ class LatentSkyProblem:
     @torch.no_grad()
     def refine_search(self, score: torch.Tensor, ground_albedo: float, refine: int = SEARCH_REFINE) -> list[dict]:
         """The best ``refine`` candidates of a (K, A) coarse score scored through the full
-        transport (``search``), as dicts (k, code, azimuth, psi, score, coarse_score); best first."""
+        transport (``search``), as dicts (k, j: code and azimuth index, code, azimuth, psi, score,
+        coarse_score); best first."""
         codes, _ = self.candidate_skies()
         A = score.shape[1]
         best = torch.argsort(score.reshape(-1))[:refine]
         k_idx, j_idx = best // A, best % A
         psi2, score2 = self.full_scores(self.rotated_candidates(k_idx.tolist(), j_idx.tolist()), ground_albedo)
-        out = [{"k": int(k), "code": codes[int(k)], "azimuth": self.search_azimuth(j),
+        out = [{"k": int(k), "j": int(j), "code": codes[int(k)], "azimuth": self.search_azimuth(j),
                 "psi": psi2[i].numpy().astype(np.float64), "score": float(score2[i]), "coarse_score": float(score[k, j])}
                for i, (k, j) in enumerate(zip(k_idx.tolist(), j_idx.tolist()))]
         return sorted(out, key=lambda c: c["score"])
@@ -295,43 +296,57 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
         return total, data
 
     t_fit = time.perf_counter()
-    variables = (z0, phi0, logpsi0, u0, xg0)
-    budget, iterations = max(1, cfg.max_iter), 0
-    if len(starts) > 1 and 0 < cfg.sun_all_starts_iters < budget:
-        variables, its = _lbfgs(objective, variables, cfg, cfg.sun_all_starts_iters, fixed is not None)
-        iterations += its
-        budget -= its
-        with torch.no_grad():
-            total, _ = objective(*variables)
-        keep = int(np.nanargmin(total.numpy()))
-        variables = tuple(v[keep : keep + 1].clone() for v in variables)
-    variables, its = _lbfgs(objective, variables, cfg, budget, fixed is not None)
-    iterations += its
+    variables, iterations, converged, total = fit_starts(objective, (z0, phi0, logpsi0, u0, xg0), cfg,
+                                                         fixed is not None)
     fit_s = time.perf_counter() - t_fit
-
+    zs, phi, logpsi, u, xg = variables
     with torch.no_grad():
-        total, _ = objective(*variables)
-        zs, phi, logpsi, u, xg = variables
         _, rho, log_exposure, rho_g = unpack(*variables)
-    if not torch.isfinite(total).all():
-        raise EstimationError("optimisation diverged: objective is not finite")
-    layout = model.latent_layout
-    params = np.zeros(model.num_params, dtype=np.float64)
-    params[layout.exposure] = float(log_exposure[0])
-    params[layout.code] = zs[0].double().numpy()
-    params[layout.azimuth] = float(((phi[0] + math.pi) % (2 * math.pi)) - math.pi)
+    params = latent_params(model, float(log_exposure[0]), zs[0], phi[0])
     probe = _probe_with_ground(model, params, float(rho_g[0]))
     if not np.isfinite(probe).all():
         raise EstimationError("estimated probe is not finite")
     runtime = time.perf_counter() - t_start
     return EstimateResult(
         params=params, param_names=list(model.param_names), albedo=rho[0].double().numpy(),
-        ground_albedo=float(rho_g[0]), loss=float(total[0]), iterations=iterations, converged=its < budget,
+        ground_albedo=float(rho_g[0]), loss=float(total[0]), iterations=iterations, converged=converged,
         runtime_s=runtime, probe=probe, sun_direction=model.sun_direction(params),
         timings={"precompute_s": precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime,
                  "starts": float(len(starts))},
         start_losses=[c["score"] for c in starts], num_pixels_used=int(prob.idx.size),
     )
+
+
+def fit_starts(objective, variables, cfg: EstimatorConfig, fixed_albedo: bool) -> tuple[tuple, int, bool, torch.Tensor]:
+    """L-BFGS (``_lbfgs``) on every start (leading dimension of ``variables``) for
+    ``sun_all_starts_iters`` iterations, then on the best alone for the rest of ``max_iter``:
+    the optimised leaves, the iterations taken, whether the last run stopped before its budget and
+    the final objective (1,). Raises EstimationError if that is not finite."""
+    budget, iterations = max(1, cfg.max_iter), 0
+    if len(variables[0]) > 1 and 0 < cfg.sun_all_starts_iters < budget:
+        variables, its = _lbfgs(objective, variables, cfg, cfg.sun_all_starts_iters, fixed_albedo)
+        iterations += its
+        budget -= its
+        with torch.no_grad():
+            total, _ = objective(*variables)
+        keep = int(np.nanargmin(total.numpy()))
+        variables = tuple(v[keep : keep + 1].clone() for v in variables)
+    variables, its = _lbfgs(objective, variables, cfg, budget, fixed_albedo)
+    with torch.no_grad():
+        total, _ = objective(*variables)
+    if not torch.isfinite(total).all():
+        raise EstimationError("optimisation diverged: objective is not finite")
+    return variables, iterations + its, its < budget, total
+
+
+def latent_params(model, log_exposure: float, code: torch.Tensor, azimuth: torch.Tensor) -> np.ndarray:
+    """The model's parameter vector (float64) of an exposure, a code (D,) and an azimuth (wrapped to [-pi, pi))."""
+    layout = model.latent_layout
+    params = np.zeros(model.num_params, dtype=np.float64)
+    params[layout.exposure] = log_exposure
+    params[layout.code] = code.double().numpy()
+    params[layout.azimuth] = float(((azimuth + math.pi) % (2 * math.pi)) - math.pi)
+    return params
 
 
 def _probe_with_ground(model, params: np.ndarray, ground_albedo: float) -> np.ndarray:
