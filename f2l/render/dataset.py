@@ -22,7 +22,8 @@ exists is complete and is skipped when the command runs again (resumable).
 
 Ablation switches (``RenderOptions``): ``specular=False`` (Lambertian skin), ``max_depth=2``
 (no interreflection), ``head="canonical"`` (MediaPipe's canonical face closed into a head),
-``clipping=False`` (exposure puts the face's maximum at 0.9).
+``clipping=False`` (exposure puts the face's maximum at 0.9). ``shade_one`` is the framed groups'
+(:mod:`f2l.render.occluder`).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class RenderOptions:
     clipping: bool = True
     sunsky_fraction: float = 0.5
     maps: str = "eval"  # a key of f2l.render.hdri.MAP_SETS
+    shade_one: bool = False  # framed groups: one person in an occluder's shadow (f2l.render.occluder)
 
     def __post_init__(self):
         from f2l.render.hdri import MAP_SETS

@@ -14,6 +14,11 @@ outdoor photos are mostly wider; here each case draws, from its own seeded strea
 - lighting, skin material, exposure (a percentile of all the faces' brightest channel to 1.0),
   noise and 8-bit sRGB as :mod:`f2l.render.dataset`.
 
+``shade_one`` (``--shade-one``): a dark board puts one person's face in its shadow on clear
+skies (:mod:`f2l.render.occluder`; its draws ``shade`` from a stream of their own, the rest of the
+case unchanged); meta gains ``shaded_person`` (an index of ``persons``, or null), ``occluder``
+and ``shade_note``. The probe stays the sky's.
+
 Written per case (ids ``pbr-<framing>-s<seed>-<index>``): ``photos/<id>.jpg``, ``png/<id>.png``,
 ``probes/<id>.exr`` (one light for every face of the photo), ``truth/<id>.npz`` (the scene's
 merged mesh with each triangle's person) and ``meta/<id>.json`` (every draw, and ``faces``: per
@@ -30,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from f2l.render.dataset import PROBE_GRID, RenderOptions, _lighting, _rotation, _stream, _sun_of, expose, render_set, render_settings
+from f2l.render.occluder import draw_shade, place_occluder
 
 FRAMINGS = ("portrait", "half", "full", "group")
 HEAD_WIDTH_CM = 16.0
@@ -70,8 +76,11 @@ def draw_framed_case(framing: str, seed: int, index: int, options: RenderOptions
     shift = [float(rng.uniform(-0.2, 0.2)), float(rng.uniform(-0.15, 0.15))]  # the group's place in the frame
     camera = {**base["camera"], "fov_x_deg": round(fov, 4), "head_width_fraction": round(fraction, 5),
               "upright": upright, "shift_fraction": [round(v, 4) for v in shift]}
-    return {**base, "face_id": framed_case_id(framing, seed, index), "framing": framing, "camera": camera,
+    spec = {**base, "face_id": framed_case_id(framing, seed, index), "framing": framing, "camera": camera,
             "persons": persons}
+    if options.shade_one:
+        spec["shade"] = draw_shade(seed, index)
+    return spec
 
 
 def _frame_size(long_px: int, upright: bool) -> tuple[int, int]:
@@ -127,12 +136,14 @@ def render_framed_case(spec: dict, options: RenderOptions) -> dict:
         posed = head.posed(rotation, offset)
         heads.append(posed)
         faces_truth.append({"corners": posed.vertices[corners], "person": i, "pose": person,
-                            "distance_cm": float(distance - z)})
+                            "distance_cm": float(distance - z), "forward": rotation[:, 2]})
     scene_head, person_of_face = _merge(heads)
     settings = render_settings(spec, options, width_px, height_px, fov, distance)
     lighting = _lighting(spec["lighting"])
+    shade = _shade(spec, lighting, faces_truth, settings, distance) if options.shade_one else None
     t_head = time.perf_counter()
-    result = render_head(scene_head, lighting, settings)
+    occluders = [shade["occluder"]] if shade and shade["occluder"] else []
+    result = render_head(scene_head, lighting, settings, occluders=occluders)
     t_render = time.perf_counter()
     image = result["image"].astype(np.float64)
     focal = result["focal_px"]
@@ -140,6 +151,7 @@ def render_framed_case(spec: dict, options: RenderOptions) -> dict:
     truths = []
     for truth in faces_truth:
         p = truth.pop("corners")
+        truth.pop("forward")
         zc = distance - p[:, 2]
         col = width_px / 2 + focal * p[:, 0] / zc
         row = height_px / 2 - focal * p[:, 1] / zc
@@ -162,8 +174,36 @@ def render_framed_case(spec: dict, options: RenderOptions) -> dict:
             "image_size": [width_px, height_px], "faces": truths, "sky": _sun_of(probe, spec["lighting"]),
             "timings_s": {"heads": round(t_head - t0, 3), "render": round(t_render - t_head, 3),
                           "probe_and_photo": round(t_done - t_render, 3)}}
+    if shade is not None:
+        meta.update(shade)
     return {"photo": photo, "probe": probe.astype(np.float32), "meta": meta, "head": scene_head,
             "truth_extra": {"person": person_of_face}}
+
+
+def _project(points: np.ndarray, settings, distance: float):
+    """(cols, rows, in front of the camera) of points (N, 3) in the photo of ``settings``."""
+    focal = settings.width_px / (2.0 * np.tan(np.radians(settings.fov_x_deg) / 2.0))
+    zc = distance - points[:, 2]
+    safe = np.where(zc > 1.0, zc, 1.0)
+    return (settings.width_px / 2 + focal * points[:, 0] / safe, settings.height_px / 2 - focal * points[:, 1] / safe,
+            zc > 1.0)
+
+
+def _shade(spec: dict, lighting, faces_truth: list[dict], settings, distance: float) -> dict:
+    """The board of a ``shade_one`` case (f2l.render.occluder): none under an overcast sky."""
+    from f2l.render.scene import ground_truth_probe
+
+    sky = _sun_of(ground_truth_probe(lighting, PROBE_GRID), spec["lighting"])
+    if sky["kind"] != "clear":
+        return {"shaded_person": None, "occluder": None, "shade_note": "overcast"}
+    boxes = []
+    for truth in faces_truth:
+        cols, rows, _ = _project(truth["corners"], settings, distance)
+        boxes.append([float(cols.min()), float(rows.min()), float(cols.max()), float(rows.max())])
+    centres = np.array([t["corners"].mean(axis=0) for t in faces_truth])
+    forwards = np.array([t["forward"] for t in faces_truth])
+    return place_occluder(spec["shade"], np.asarray(sky["sun_direction"]), centres, forwards, boxes,
+                          lambda p: _project(p, settings, distance), (settings.width_px, settings.height_px))
 
 
 def render_framed(out: Path, framing: str, n: int, seed: int = 0, options: RenderOptions = RenderOptions(), *,

@@ -15,6 +15,10 @@ along −Z, cm). Two kinds of lighting:
 average of the map the renderer used, and for the sky model the sun's integrated power in its
 texel.
 
+An occluder (``render_head(..., occluders=...)``) is a dark diffuse disc (reflectance
+:data:`OCCLUDER_REFLECTANCE`) in the scene: it casts a shadow and is seen by the camera where it is
+in the frame (``f2l eval render-faces --shade-one``, :mod:`f2l.render.occluder`).
+
 The integrator is Mitsuba's ``path`` (max depth 6: skin–skin, skin–shoulder bounces);
 ``max_depth=2`` is direct light only (the "no interreflection" ablation). An ``aov`` pass of depth
 gives the head's image mask.
@@ -38,6 +42,7 @@ from f2l.render.heads import PART_CAVITY, PART_EYE, PART_HAIR, PART_SHIRT, PART_
 __all__ = ["MapLighting", "SunSkyLighting", "RenderSettings", "ground_truth_probe", "render_head"]
 
 SUN_APERTURE_DEG = 0.5358  # Mitsuba's sunsky default: the sun's angular diameter
+OCCLUDER_REFLECTANCE = 0.04  # a dark board
 
 
 def mitsuba():
@@ -202,8 +207,21 @@ def _bsdf(kind: str, settings: RenderSettings) -> dict:
             "specular": float(specular)}
 
 
-def render_head(head: Head, lighting, settings: RenderSettings) -> dict:
-    """Path-trace ``head`` (already posed) under ``lighting``.
+def _disc(mi, disc: dict) -> dict:
+    """A Mitsuba ``disk`` (unit disc in its XY plane, normal +Z) moved to ``disc``'s centre, normal and radius."""
+    c = np.asarray(disc["center_cm"], np.float64)
+    n = np.asarray(disc["normal"], np.float64)
+    up = [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0]
+    r = float(disc["radius_cm"])
+    to_world = mi.ScalarTransform4f().look_at(origin=c.tolist(), target=(c + n).tolist(), up=up).scale([r, r, 1.0])
+    return {"type": "disk", "to_world": to_world,
+            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb",
+                                                                                      "value": [OCCLUDER_REFLECTANCE] * 3}}}}
+
+
+def render_head(head: Head, lighting, settings: RenderSettings, occluders=()) -> dict:
+    """Path-trace ``head`` (already posed) under ``lighting``, with ``occluders``: discs
+    ``{"center_cm": (3,), "normal": (3,), "radius_cm": r}`` in the same frame.
 
     Returns ``{"image": (H, W, 3) float32 linear radiance, "depth_cm": (H, W) float32 (0 where
     the ray leaves the scene), "focal_px": float}``.
@@ -230,6 +248,8 @@ def render_head(head: Head, lighting, settings: RenderSettings) -> dict:
                 path = Path(tmp) / f"{kind}.ply"
                 _write_ply(path, head, mask)
                 scene[f"head_{kind}"] = {"type": "ply", "filename": str(path), "bsdf": _bsdf(kind, settings)}
+        for i, disc in enumerate(occluders):
+            scene[f"occluder_{i}"] = _disc(mi, disc)
         raw = np.array(mi.render(mi.load_dict(scene)), dtype=np.float32)
     focal_px = settings.width_px / (2.0 * np.tan(np.radians(settings.fov_x_deg) / 2.0))
     return {"image": np.clip(raw[..., :3], 0.0, None), "depth_cm": raw[..., -1], "focal_px": float(focal_px)}
