@@ -27,6 +27,7 @@ def render_faces_cmd(
     sunsky_fraction: float = typer.Option(0.5, help="Fraction of cases under a Hosek-Wilkie sky (the rest: real HDR maps)."),
     maps: str = typer.Option("eval", help="Which real maps: eval (the seven of `make eval-real`) or held-out (city, sunrise, sunset: no default was chosen on them)."),
     framing: str = typer.Option("portrait", help="portrait (one head, 35-55% of a square frame), half (one person, head 12-25% of a 3:2 frame's long side), full (4-10%) or group (2-5 people, 5-14% each, one light); wider framings use --image-px as the long side (1280 suggested)."),
+    shade_one: bool = typer.Option(False, "--shade-one", help="--framing group: under a clear sky a dark board puts one person's face in its shadow (meta: shaded_person)."),
     json_out: JsonOut = False,
 ) -> None:
     """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups."""
@@ -42,13 +43,15 @@ def render_faces_cmd(
         fail(str(exc))
     try:
         options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
-                                clipping=clipping, sunsky_fraction=sunsky_fraction, maps=maps)
+                                clipping=clipping, sunsky_fraction=sunsky_fraction, maps=maps, shade_one=shade_one)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     from f2l.render.framing import FRAMINGS, render_framed
 
     if framing not in FRAMINGS:
         raise typer.BadParameter(f"must be one of {', '.join(FRAMINGS)}", param_hint="--framing")
+    if shade_one and framing != "group":
+        raise typer.BadParameter("only with --framing group", param_hint="--shade-one")
     if framing == "portrait":
         summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
     else:
@@ -227,4 +230,26 @@ def eval_groups_cmd(
                       progress=None if json_out else (lambda r: typer.echo(
                           f"{r['case']} n={r['n']}: Sun-ang {r['single'][0]:.1f} -> {r['joint'][0]:.1f}", err=True)))
     text = write_group_report(rows, out) if out is not None else group_table(rows)
+    typer.echo(json.dumps(rows) if json_out else text)
+
+
+def eval_shade_cmd(
+    render_dirs: list[Path] = typer.Argument(..., help="`f2l eval render-faces --framing group --shade-one` folders."),
+    fitted: Path = typer.Option(..., "--fitted", help="`f2l fit-faces` of their photos."),
+    model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write shade.md and shade.json here."),
+    json_out: JsonOut = False,
+) -> None:
+    """A face in an occluder's shadow: how often the joint estimate leaves it out, and the §5.1 metrics of the joint estimate with the check on, without that face, and with the check off."""
+    from f2l.evaluation.shade import shade_rows, shade_table, write_shade_report
+
+    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
+    if missing:
+        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    rows = shade_rows(render_dirs, fitted, model,
+                      progress=None if json_out else (lambda r: typer.echo(
+                          f"{r['case']}: shaded face flagged {r['flagged']}, agreements {r['agreements']}", err=True)))
+    if not rows:
+        fail("no shaded photo (meta shaded_person) in " + ", ".join(map(str, render_dirs)))
+    text = write_shade_report(rows, out) if out is not None else shade_table(rows)
     typer.echo(json.dumps(rows) if json_out else text)
