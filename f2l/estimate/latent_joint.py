@@ -17,8 +17,11 @@ freezes u; the group's exposure is then its faces' mean log(psi_i / rho).
 Starts: every (code, azimuth) of the search is scored by sum_i w_i c_i, c_i face i's coarse score
 (its relative residual with its own least-squares psi, ``LatentSkyProblem.coarse_scores``); the
 best ``SEARCH_REFINE`` are scored again through each face's full transport (summed the same way),
-and the best ``sun_starts`` distinct ones (``latent.pick_starts``) start L-BFGS as for one face:
-all for ``sun_all_starts_iters`` iterations, then the best alone for the rest of ``max_iter``.
+and the best ``sun_starts`` distinct ones (``latent.pick_starts``) start L-BFGS, with each face's
+own best light of its own search (``refine_search``) where distinct from them: a light that is
+merely passable for every face can out-score, in the search's metric, one that is right for most
+(the clipped pixels, in the objective only, tell them apart). As for one face: all starts for
+``sun_all_starts_iters`` iterations, then the best alone for the rest of ``max_iter``.
 
 Faces that disagree (in another's shadow, under a hat) are left out, as f2l.estimate.joint does,
 in the search's metric (full transport, least-squares psi, ground albedo ``ground_albedo_init``):
@@ -27,7 +30,8 @@ light of its own search. Before the fit, each face's own best light is tried on 
 light most faces stay within ``disagree_ratio`` of wins (ties: the lower mean ratio) and the faces
 beyond it are left out. After each fit, while the worst used face's agreement with the fitted
 light exceeds ``disagree_ratio``, it is left out and the rest fitted afresh. A group left with one
-face is that face's :func:`f2l.estimate.estimator.estimate`, bit for bit.
+face is that face's :func:`f2l.estimate.estimator.estimate`, bit for bit. Agreements are measured
+(and reported) with ``disagree_ratio`` None too; then no face is left out.
 """
 
 from __future__ import annotations
@@ -77,11 +81,12 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
     t_search = time.perf_counter()
     g0 = cfg.ground_albedo_init
     coarse = {i: p.coarse_scores(g0) for i, p in problems.items()} if len(active) > 1 else {}
-    own = {i: problems[i].refine_search(c, g0) for i, c in coarse.items()} if disagree_ratio is not None else {}
+    own = {i: problems[i].refine_search(c, g0) for i, c in coarse.items()}
+    lights = _own_lights(problems, own, g0) if own else {}
     search_s = time.perf_counter() - t_search
     agreement: dict[int, float] = {}
-    if own and len(active) > 1:
-        support = _consensus(problems, own, active, disagree_ratio, g0)
+    if disagree_ratio is not None and len(active) > 1:
+        support = _consensus(lights, own, active, disagree_ratio)
         agreement.update(support)
         for i in active:
             if support[i] > disagree_ratio:
@@ -93,15 +98,13 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
             break
         weights = face_weights([observations[i] for i in active], cfg, [noise[i] for i in active])
         result, fit = _fit([problems[i] for i in active], weights, _exposure_indices(groups[active]),
-                           [coarse[i] for i in active], model, cfg)
+                           [coarse[i] for i in active], [lights[i] for i in active], active, model, cfg)
         result.timings["search_s"] += search_s
-        if not own:
-            break
         sky = problems[active[0]].shape_sky(torch.as_tensor(fit["code"][None], dtype=torch.float32),
                                             torch.tensor([fit["azimuth"]], dtype=torch.float32)).detach()
         agreement.update({i: _ratio(problems[i], sky, own[i], g0) for i in problems})
         worst = max(active, key=lambda i: agreement[i])
-        if agreement[worst] <= disagree_ratio:
+        if disagree_ratio is None or agreement[worst] <= disagree_ratio:
             break
         _leave_out(shares[worst], agreement[worst], disagree_ratio, "")
         active = [i for i in active if i != worst]
@@ -140,23 +143,32 @@ def _ratio(p: LatentSkyProblem, sky: torch.Tensor, own: list[dict], ground_albed
     return float(p.full_scores(sky, ground_albedo)[1][0]) / max(own[0]["score"], 1e-12)
 
 
-def _consensus(problems: dict[int, LatentSkyProblem], own: dict[int, list[dict]], active: list[int],
-               limit: float, ground_albedo: float) -> dict[int, float]:
+def _own_lights(problems: dict[int, LatentSkyProblem], own: dict[int, list[dict]], ground_albedo: float) -> dict[int, dict]:
+    """Each face's own best light of its search (k, j, code, azimuth) with every face's
+    least-squares psi (3,) and score under it ("psi", "score": dicts by face)."""
+    faces = sorted(own)
+    skies = problems[faces[0]].rotated_candidates([own[i][0]["k"] for i in faces], [own[i][0]["j"] for i in faces])
+    fits = {j: problems[j].full_scores(skies, ground_albedo) for j in faces}  # psi (L, 3), score (L,)
+    return {i: {**{key: own[i][0][key] for key in ("k", "j", "code", "azimuth")},
+                "psi": {j: fits[j][0][a].numpy().astype(np.float64) for j in faces},
+                "score": {j: float(fits[j][1][a]) for j in faces}} for a, i in enumerate(faces)}
+
+
+def _consensus(lights: dict[int, dict], own: dict[int, list[dict]], active: list[int], limit: float) -> dict[int, float]:
     """Each face's agreement with the light most faces agree with, among the faces' own best
     lights of the search (module docstring)."""
-    first = problems[active[0]]
-    lights = first.rotated_candidates([own[i][0]["k"] for i in active], [own[i][0]["j"] for i in active])
-    scores = {j: problems[j].full_scores(lights, ground_albedo)[1].numpy() for j in active}  # (lights,)
-    ratio = {j: scores[j] / max(own[j][0]["score"], 1e-12) for j in active}
-    table = np.stack([ratio[j] for j in active], 1)  # (lights, faces)
-    best = min(range(len(active)), key=lambda a: (-int((table[a] <= limit).sum()), float(table[a].mean())))
-    return {j: float(table[best, col]) for col, j in enumerate(active)}
+    def ratio(a: int, j: int) -> float:
+        return lights[a]["score"][j] / max(own[j][0]["score"], 1e-12)
+
+    best = min(active, key=lambda a: (-sum(ratio(a, j) <= limit for j in active), float(np.mean([ratio(a, j) for j in active]))))
+    return {j: ratio(best, j) for j in active}
 
 
-def _joint_starts(probs: list[LatentSkyProblem], weights: np.ndarray, coarse: list[torch.Tensor],
-                  cfg: EstimatorConfig) -> list[dict]:
-    """The search's candidates scored over all faces (module docstring), best first, as
-    ``pick_starts`` reads them; "psi" (F, 3) holds each face's least-squares psi."""
+def _joint_starts(probs: list[LatentSkyProblem], weights: np.ndarray, coarse: list[torch.Tensor], lights: list[dict],
+                  faces: list[int], cfg: EstimatorConfig) -> list[dict]:
+    """The search's candidates scored over all faces, the best ``sun_starts`` distinct ones, then
+    the faces' own best lights (``lights``, of faces ``faces``) distinct from those (module
+    docstring), as ``pick_starts`` reads them; "psi" (F, 3) holds each face's least-squares psi."""
     total = sum(float(w) * c for w, c in zip(weights, coarse))  # (K, A)
     A = total.shape[1]
     best = torch.argsort(total.reshape(-1))[:SEARCH_REFINE]
@@ -168,15 +180,19 @@ def _joint_starts(probs: list[LatentSkyProblem], weights: np.ndarray, coarse: li
     codes, _ = probs[0].candidate_skies()
     out = [{"k": k, "j": j, "code": codes[k], "azimuth": probs[0].search_azimuth(j), "psi": psi[r],
             "score": float(score[r])} for r, (k, j) in enumerate(zip(k_idx, j_idx))]
-    return pick_starts(sorted(out, key=lambda c: c["score"]), max(1, cfg.sun_starts))
+    picked = pick_starts(sorted(out, key=lambda c: c["score"]), max(1, cfg.sun_starts))
+    extra = [{**{key: light[key] for key in ("k", "j", "code", "azimuth")},
+              "psi": np.stack([light["psi"][i] for i in faces]),
+              "score": float(sum(float(w) * light["score"][i] for w, i in zip(weights, faces)))} for light in lights]
+    return pick_starts(picked + sorted(extra, key=lambda c: c["score"]), len(picked) + len(extra))
 
 
 def _fit(probs: list[LatentSkyProblem], weights: np.ndarray, groups: np.ndarray, coarse: list[torch.Tensor],
-         model, cfg: EstimatorConfig) -> tuple[EstimateResult, dict]:
+         lights: list[dict], faces: list[int], model, cfg: EstimatorConfig) -> tuple[EstimateResult, dict]:
     """The joint fit of F >= 2 faces (module docstring): the group's result and the faces' parts."""
     t_start = time.perf_counter()
     torch.set_num_threads(max(1, cfg.threads))
-    starts = _joint_starts(probs, weights, coarse, cfg)
+    starts = _joint_starts(probs, weights, coarse, lights, faces, cfg)
     search_s = time.perf_counter() - t_start
     torch.set_num_threads(1)  # small batched tensors: one intra-op thread (f2l.estimate.estimator)
     nf, E, B = len(probs), int(groups.max()) + 1, len(starts)
