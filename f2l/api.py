@@ -17,6 +17,7 @@ photo's linear values (``FaceEstimate.units`` says which).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -44,6 +45,8 @@ class FaceEstimate:
     albedo: tuple[float, float, float] | None = None
     units: str = ""
     face_box_px: tuple[float, float, float, float] | None = None
+    group_size: int = 1  # faces of the photo that shared the light (joint=True); 1: the face alone
+    agreement: float | None = None  # how well the face agrees with the shared light (1 = fully)
 
     @property
     def ok(self) -> bool:
@@ -85,9 +88,11 @@ def load_probe(path: str | os.PathLike) -> np.ndarray:
 
 
 def estimate_photo(path: str | os.PathLike, model: str = "sunsky", *,
-                   min_face_px: float | None = None) -> list[FaceEstimate]:
+                   min_face_px: float | None = None, joint: bool = True) -> list[FaceEstimate]:
     """Every face of one photo (JPEG, PNG, TIFF or camera RAW), each with the light ``model``
-    estimates from it, in the detector's order (module doc). A photo that cannot be read raises
+    estimates from it, in the detector's order (module doc). With ``joint`` the faces share one
+    light (f2l.estimate.joint; a face that disagrees keeps its own, and its message says why);
+    ``joint=False`` estimates each face alone. A photo that cannot be read raises
     :class:`f2l.io.photo.core.PhotoError` (a ValueError naming it); an unknown model raises
     :class:`f2l.models.registry.ModelNotFoundError`. A photo without a face gives an empty list."""
     from f2l.face.fit import FaceFit, face_record, fit_photo_faces, landmark_box
@@ -104,7 +109,7 @@ def estimate_photo(path: str | os.PathLike, model: str = "sunsky", *,
         fit["min_face_px"] = float(min_face_px)
     options = fit_options(fit, spec.params("transport"), (spec.grid_height, spec.grid_width))
     photo = load_photo(path)
-    out = []
+    out, fitted = [], []
     for found in fit_photo_faces(photo, FaceLandmarker(), options):
         if not isinstance(found, FaceFit):
             out.append(FaceEstimate(str(path), found.face_index, model, found.reason, found.message,
@@ -112,7 +117,51 @@ def estimate_photo(path: str | os.PathLike, model: str = "sunsky", *,
             continue
         record = face_record(found, photo, f"{Path(path).stem}-{found.face_index}", options,
                              source_path=str(path))
-        out.append(_estimate(record, model, landmark_box(found.landmarks)))
+        fitted.append((len(out), record, landmark_box(found.landmarks)))
+        out.append(None)
+    shared = _estimate_together([r for _, r, _ in fitted], model) if joint and len(fitted) > 1 else {}
+    for slot, record, box in fitted:
+        together = shared.get(record.face_id)
+        out[slot] = _estimate(record, model, box) if together is None else dataclasses.replace(
+            together, face_box_px=tuple(box))
+    return out
+
+
+def _estimate_together(records, model_name: str) -> dict[str, FaceEstimate]:
+    """The faces that share the joint light, by face id (the others are left to :func:`_estimate`)."""
+    from f2l.estimate.config import EstimatorConfig
+    from f2l.estimate.joint import JointUnsupported, estimate_joint
+    from f2l.estimate.observation import EstimationError, FaceObservation
+    from f2l.estimate.record import _get_model, capture_sun_prior, record_absolute_scale
+    from f2l.lighting.grid import LatLongGrid
+    from f2l.models.capabilities import SunAngles
+
+    cfg = EstimatorConfig()
+    grid = LatLongGrid(records[0].grid_height, records[0].grid_width)
+    model = _get_model(model_name, grid)
+    if cfg.sun_prior_from_capture and isinstance(model, SunAngles):
+        prior, _ = capture_sun_prior(records[0], cfg.sun_prior_sigma_rad)
+        cfg = cfg if prior is None else dataclasses.replace(cfg, sun_elevation_prior=prior)
+    observations = [FaceObservation(r.normals, r.observed_rgb, r.mask, r.visibility_bits, grid, r.face_id, r.points)
+                    for r in records]
+    try:
+        joint = estimate_joint(observations, model, cfg, pixel_rc=[r.pixel_rc for r in records])
+    except (JointUnsupported, EstimationError):
+        return {}
+    result, (scale, _) = joint.result, record_absolute_scale(records[0])
+    probe = result.probe if scale is None else (result.probe * scale).astype(np.float32)
+    used = sum(s.used for s in joint.faces)
+    out = {}
+    for record, share in zip(records, joint.faces):
+        if not share.used:
+            continue
+        out[record.face_id] = FaceEstimate(
+            source_path=record.source_path, face_index=record.face_index, model=model_name, status="ok",
+            message=f"one light for {used} of {len(records)} faces", probe=np.asarray(probe, np.float32),
+            sun_direction=None if result.sun_direction is None else np.asarray(result.sun_direction, float),
+            params=dict(zip(result.param_names, (float(v) for v in result.params))),
+            albedo=tuple(float(v) for v in share.albedo), group_size=len(records), agreement=share.agreement,
+            units="relative: the photo's linear values (1 = full scale)" if scale is None else "cd/m2")
     return out
 
 

@@ -95,3 +95,16 @@ def test_the_readme_figure_is_made_from_a_real_estimate(tmp_path):
     sheet = np.asarray(Image.open(out))
     assert sheet.ndim == 3 and sheet.shape[0] > 200 and sheet.shape[1] > 600
     assert (Path(__file__).resolve().parents[1] / "docs" / "example.png").is_file()
+
+
+def test_the_faces_of_one_photo_share_one_light_unless_asked_not_to(tmp_path):
+    import skimage.data
+
+    a = skimage.data.astronaut()
+    Image.fromarray(np.ascontiguousarray(np.concatenate([a, a[:, ::-1]], axis=1))).save(tmp_path / "two.jpg",
+                                                                                       quality=92)
+    together = f2l.estimate_photo(tmp_path / "two.jpg", model="sh9")
+    assert [f.status for f in together] == ["ok", "ok"] and {f.group_size for f in together} == {2}
+    assert np.array_equal(together[0].probe, together[1].probe) and together[0].face_box_px != together[1].face_box_px
+    alone = f2l.estimate_photo(tmp_path / "two.jpg", model="sh9", joint=False)
+    assert {f.group_size for f in alone} == {1} and not np.array_equal(alone[0].probe, alone[1].probe)

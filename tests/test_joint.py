@@ -10,6 +10,7 @@ runs or says why not; the command line writes one probe per photo and a row per 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -19,7 +20,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from f2l.estimate import EstimatorConfig, FaceObservation, estimate
-from f2l.estimate.joint import DISAGREE_RATIO, JointUnsupported, estimate_joint, face_noise
+from f2l.estimate.joint import DISAGREE_RATIO, estimate_joint, face_noise
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.models import load_model
 from tests.plugin_helpers import f2l_cmd
@@ -102,25 +103,26 @@ def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(fa
 
 def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):
     """A photo 2.5x darker: its face's exposure x albedo (all the data can tell apart) comes out
-    0.4x that of the same face in the first photo (channel mean, within 12%), and the sun holds."""
-    same = estimate_joint([_obs(f, n) for f, n in zip(faces[:3], "abc")], sunsky, CFG)
+    0.4x that of the same face in the first photo (channel mean, within 10%), and the sun holds."""
+    cfg = dataclasses.replace(CFG, max_iter=60)  # both fits converged: the comparison is of optima
+    same = estimate_joint([_obs(f, n) for f, n in zip(faces[:3], "abc")], sunsky, cfg)
     observations = [_obs(faces[0], "a"), _obs(faces[1], "b", gain=0.4), _obs(faces[2], "c")]
-    joint = estimate_joint(observations, sunsky, CFG, exposure_group=["p1", "p2", "p1"])
+    joint = estimate_joint(observations, sunsky, cfg, exposure_group=["p1", "p2", "p1"])
     assert joint.faces[0].gain == 1.0 and joint.faces[2].gain == 1.0
     seen = lambda s: s.gain * float(np.mean(s.albedo))  # noqa: E731
     assert seen(joint.faces[1]) / seen(joint.faces[0]) == pytest.approx(
-        0.4 * seen(same.faces[1]) / seen(same.faces[0]), rel=0.12)
+        0.4 * seen(same.faces[1]) / seen(same.faces[0]), rel=0.1)
     assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
 
 
-def test_linear_models_share_one_light_and_latent_skies_say_why_not(faces):
+def test_linear_and_latent_sky_models_share_one_light(faces):
     sh9 = load_model("sh9", GRID)
     joint = estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:3])], sh9, CFG)
     assert np.isfinite(joint.result.probe).all() and joint.result.params.shape == (27,)
     assert all(s.albedo is not None and np.all((s.albedo > 0) & (s.albedo < 1)) for s in joint.faces)
-    ae = load_model("ae", GRID)
-    with pytest.raises(JointUnsupported, match="latent-sky"):
-        estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:2])], ae, CFG)
+    ae = load_model("ae", GRID)  # latent-sky models: f2l.estimate.latent_joint (tests/test_latent_joint.py)
+    joint = estimate_joint([_obs(f, str(i)) for i, f in enumerate(faces[:2])], ae, CFG)
+    assert np.isfinite(joint.result.probe).all() and len(joint.faces) == 2
 
 
 def test_face_noise_reads_the_noise_of_a_flat_patch():
@@ -162,3 +164,82 @@ def test_cli_writes_one_probe_per_photo_and_a_row_per_face(small_shards, tmp_pat
     single = {r["face_id"]: r for r in pq.read_table(out / "single" / "estimates.parquet").to_pylist()}
     assert single[records[2].face_id]["params"] == c["params"]  # a face alone: the same estimate
     assert single[records[0].face_id]["group_id"] == ""
+
+
+def test_a_turned_face_under_the_reference_probe_shades_as_under_its_own(faces, skies):
+    """turn_observation: a face seen by a camera turned 45° right, under the reference probe,
+    shades exactly as the untouched face under the probe rolled into that camera's frame."""
+    from f2l.estimate.frames import roll_probe, turn_observation, yaw_columns
+    from f2l.transport import Transport
+
+    sunny, _ = skies
+    yaw = 45.0
+    assert yaw_columns(GRID, yaw) == 8
+    cam_probe = roll_probe(sunny, GRID, -yaw)  # the reference sky as the turned camera sees it
+    face = _obs(faces[1], "b")
+    turned = turn_observation(face, yaw)
+    T_cam = Transport(face.visibility_bits, np.asarray(face.normals, np.float64), GRID)
+    T_ref = Transport(turned.visibility_bits, np.asarray(turned.normals, np.float64), GRID)
+    s_cam = T_cam.matmul(cam_probe.reshape(-1, 3).astype(np.float64))
+    s_ref = T_ref.matmul(sunny.reshape(-1, 3).astype(np.float64))
+    assert np.allclose(s_cam, s_ref, rtol=1e-5, atol=1e-9)
+    # azimuth grows with the column: +X (azimuth 90°) is right of the centre column (-Z)
+    d = GRID.directions_flat.reshape(GRID.height, GRID.width, 3)[GRID.height // 4]
+    assert d[GRID.width // 2, 2] < 0 and d[3 * GRID.width // 4, 0] > 0.9 * np.abs(d[:, 0]).max()
+    assert np.allclose(roll_probe(cam_probe, GRID, yaw), sunny)
+
+
+def test_faces_of_photos_taken_in_other_directions_share_the_sky_once_turned(skies, sunsky):
+    """A session: three photos, the camera turned -40°, 0° and +60°, each face rendered under the
+    sky as its camera sees it; turned back by the headings, the joint sun is the reference one."""
+    from f2l.estimate.frames import roll_probe, turn_observation
+    from f2l.synth.render import render_face
+
+    sunny, _ = skies
+    observations = []
+    for i, yaw in enumerate((-40.0, 0.0, 60.0)):
+        face = render_face(GRID, roll_probe(sunny, GRID, -yaw), np.random.default_rng(30 + i), image_size=72,
+                           head_pose_deg=(10.0 * i - 10.0, -3.0, 0.0), noise_sigma=0.004)
+        observations.append(turn_observation(_obs(face, f"p{i}"), yaw))
+    joint = estimate_joint(observations, sunsky, CFG, exposure_group=[0, 1, 2])
+    assert all(s.used for s in joint.faces)
+    assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
+
+
+def test_cli_session_merges_only_photos_whose_heading_is_known(small_shards, tmp_path):
+    from f2l.io.shards import ShardWriter, iter_records
+
+    records = [r for r in iter_records(small_shards)][:3]
+    for r in records:
+        r.meta["session"] = "garden"
+    shard = tmp_path / "unknown"
+    with ShardWriter(shard) as writer:
+        for r in records:
+            writer.write(r)
+    res = subprocess.run(f2l_cmd("estimate", str(shard), "-m", "sh9", "--out", str(tmp_path / "est1"), "--joint",
+                                 "session", "--json"), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    rows = pq.read_table(tmp_path / "est1" / "estimates.parquet").to_pylist()
+    assert all("not merged" in r["message"] and "camera_yaw_deg" in r["message"] for r in rows)
+    assert {r["group_size"] for r in rows} == {1}
+    for r, yaw in zip(records, (0.0, 90.0, -45.0)):
+        r.meta["camera_yaw_deg"] = yaw
+    shard = tmp_path / "known"
+    with ShardWriter(shard) as writer:
+        for r in records:
+            writer.write(r)
+    res = subprocess.run(f2l_cmd("estimate", str(shard), "-m", "sh9", "--out", str(tmp_path / "est2"), "--joint",
+                                 "session", "--json"), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    rows = pq.read_table(tmp_path / "est2" / "estimates.parquet").to_pylist()
+    assert {r["group_size"] for r in rows} == {3} and len({r["group_id"] for r in rows}) == 1
+    assert all(r["exposure_gain"] is not None for r in rows if r["group_used"])
+
+
+def test_build_dataset_reads_the_face_cameras_heading_from_the_session_toml_view():
+    from f2l.capture.view_spec import ViewSpec
+    from f2l.pipeline.run import _camera_yaw
+
+    assert _camera_yaw({"view_json": ViewSpec(yaw_deg=30.0).to_json()}) == 30.0
+    assert _camera_yaw({"view_json": ViewSpec().to_json()}) is None and _camera_yaw({}) is None
+    assert _camera_yaw({"view_json": '{"yaw_deg": "east"}'}) is None  # an unreadable view: no heading

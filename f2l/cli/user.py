@@ -80,9 +80,11 @@ def estimate(
         "photo", "--joint",
         help="photo: the faces of one photo share one light (one probe per photo, a row per face saying how well "
              "it agrees; a face that disagrees, e.g. in another's shadow, is left out and gets its own); "
-             "none: every face alone."),
+             "session: the faces of one session (records' meta 'session', e.g. from build-dataset) share one light, "
+             "each photo turned by its camera's heading (session.toml [[shots]] yaw_deg; where one is unknown, f2l "
+             "says so and groups by photo); none: every face alone."),
     also_single: bool = typer.Option(
-        False, "--also-single", help="With --joint photo, also estimate every face alone into OUT/single (for comparison)."),
+        False, "--also-single", help="With --joint photo or session, also estimate every face alone into OUT/single (for comparison)."),
     json_out: JsonOut = False,
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
@@ -97,8 +99,8 @@ def estimate(
         _fail(f"no such photo or shard path: {', '.join(missing)}")
     if executor not in ("local", "ray"):
         raise typer.BadParameter("must be local or ray", param_hint="--executor")
-    if joint not in ("photo", "none"):
-        raise typer.BadParameter("must be photo or none", param_hint="--joint")
+    if joint not in ("photo", "session", "none"):
+        raise typer.BadParameter("must be photo, session or none", param_hint="--joint")
     photos = [s for s in shards if is_photo_input(s)]
     fitted = None
     if photos:

@@ -17,7 +17,10 @@ import hashlib
 import time
 from pathlib import Path
 
+import numpy as np
+
 from f2l.estimate.config import EstimatorConfig
+from f2l.estimate.frames import turn_observation
 from f2l.estimate.joint import DISAGREE_RATIO, JointUnsupported, estimate_joint
 from f2l.estimate.observation import EstimationError, FaceObservation
 from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior, config_hash,
@@ -26,8 +29,26 @@ from f2l.io.record_limits import declared_size_problem
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.capabilities import SunAngles
 
-JOINT_MODES = ("photo", "none")
-JOINT_SETTINGS = {"mode": "photo", "disagree_ratio": DISAGREE_RATIO}
+JOINT_MODES = ("photo", "session", "none")
+YAW_KEY = "camera_yaw_deg"  # record meta: the camera's heading in the session's frame (deg, + = right)
+
+
+def joint_settings(mode: str) -> dict:
+    """What a joint row's estimate depends on beyond the estimator's config."""
+    return {"mode": mode, "disagree_ratio": DISAGREE_RATIO}
+
+
+def group_key(record, mode: str) -> str:
+    """Which faces share one light: the photo (``photo``), the record's ``meta["session"]`` (or
+    ``meta["joint_group"]``; ``session``, else its photo), or the face itself (``none``)."""
+    meta = record.meta if isinstance(getattr(record, "meta", None), dict) else {}
+    if mode == "session":
+        key = meta.get("joint_group") or meta.get("session")
+        if isinstance(key, str) and key:
+            return f"session:{key}"
+    if mode == "none":
+        return f"face:{record.face_id}"
+    return f"photo:{record.source_path}"
 
 
 def group_id_of(source_path: str) -> str:
@@ -36,9 +57,9 @@ def group_id_of(source_path: str) -> str:
     return f"{_safe_name(Path(str(source_path)).stem)[:64]}-{digest}"
 
 
-def joint_hash(model_name: str, model_version: str, cfg: EstimatorConfig) -> str:
+def joint_hash(model_name: str, model_version: str, cfg: EstimatorConfig, mode: str = "photo") -> str:
     """The config hash of rows estimated in a group of several faces."""
-    return config_hash(model_name, model_version, cfg, JOINT_SETTINGS)
+    return config_hash(model_name, model_version, cfg, joint_settings(mode))
 
 
 def estimate_alone(records: list, model_name: str, out_dir: str, cfg: EstimatorConfig) -> list[dict]:
@@ -46,10 +67,38 @@ def estimate_alone(records: list, model_name: str, out_dir: str, cfg: EstimatorC
     return [estimate_record(r, model_name, out_dir, cfg) for r in records]
 
 
-def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorConfig) -> list[dict]:
-    """Estimate the faces of one photo (``records``) with one light; one row per face, in order.
-    Never raises for a bad face or group (status and message in the rows)."""
-    gid = group_id_of(records[0].source_path)
+def estimate_session(records: list, model_name: str, out_dir: str, cfg: EstimatorConfig) -> list[dict]:
+    """Estimate the faces of one session (``records``, several photos) with one light: each face
+    turned into the first photo's camera frame by its camera's heading (``meta["camera_yaw_deg"]``,
+    f2l.estimate.frames), one exposure per photo. Where a photo's heading is unknown the session is
+    not merged: each photo's faces share a light, and every row says why. One row per face."""
+    photos = list(dict.fromkeys(r.source_path for r in records))
+    unknown = [p for p in photos if any(_yaw(r) is None for r in records if r.source_path == p)]
+    if len(photos) > 1 and unknown:
+        note = (f"not merged across the session's {len(photos)} photos: the camera's heading is unknown for "
+                f"{', '.join(Path(p).name for p in unknown[:3])}{' …' if len(unknown) > 3 else ''} "
+                f"(record meta {YAW_KEY!r}, from session.toml [[shots]] yaw_deg)")
+        rows = []
+        for p in photos:
+            rows += [_alone(r, r["group_id"], r["group_size"], note)
+                     for r in estimate_group([r for r in records if r.source_path == p], model_name, out_dir, cfg)]
+        order = {r.face_id: i for i, r in enumerate(records)}
+        return sorted(rows, key=lambda row: order.get(row["face_id"], 0))
+    key = (records[0].meta or {}).get("joint_group") or (records[0].meta or {}).get("session") or photos[0]
+    return estimate_group(records, model_name, out_dir, cfg, mode="session", gid=group_id_of(str(key)))
+
+
+def _yaw(record) -> float | None:
+    value = (record.meta or {}).get(YAW_KEY) if isinstance(getattr(record, "meta", None), dict) else None
+    return float(value) if isinstance(value, (int, float)) and np.isfinite(value) else None
+
+
+def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorConfig, mode: str = "photo",
+                   gid: str | None = None) -> list[dict]:
+    """Estimate the faces of one photo (``records``; ``mode`` "session": of one session, turned
+    into the first photo's frame, see :func:`estimate_session`) with one light; one row per face,
+    in order. Never raises for a bad face or group (status and message in the rows)."""
+    gid = gid or group_id_of(records[0].source_path)
     if len(records) == 1:
         return [_alone(estimate_record(records[0], model_name, out_dir, cfg), gid, 1)]
     torch_threads(cfg.threads)
@@ -84,8 +133,16 @@ def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorC
     observations = [FaceObservation(normals=r.normals, observed_rgb=r.observed_rgb, mask=r.mask,
                                     visibility_bits=r.visibility_bits, grid=grid, face_id=r.face_id,
                                     points=getattr(r, "points", None)) for r in group]
+    exposure = None
+    if mode == "session":  # every face in the first photo's camera frame, an exposure per photo
+        yaw0 = _yaw(group[0]) or 0.0
+        observations = [turn_observation(o, (_yaw(r) or 0.0) - yaw0) for o, r in zip(observations, group)]
+        exposure = [r.source_path for r in group]
+        frame = f"in the camera frame of {Path(group[0].source_path).name}"
+        note = "; ".join(m for m in (note, frame) if m)
     try:
-        joint = estimate_joint(observations, model, run_cfg, pixel_rc=[r.pixel_rc for r in group])
+        joint = estimate_joint(observations, model, run_cfg, exposure_group=exposure,
+                               pixel_rc=[r.pixel_rc for r in group])
     except JointUnsupported as exc:
         for i in usable:
             rows[i] = _alone(estimate_record(records[i], model_name, out_dir, cfg), gid, len(records),
@@ -94,7 +151,7 @@ def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorC
     except EstimationError as exc:
         for i in usable:
             rows[i].update(status="bad_face", message=f"{records[i].face_id} (group {gid}): {exc}",
-                           model_version=str(model.version), config_hash=joint_hash(model_name, model.version, cfg))
+                           model_version=str(model.version), config_hash=joint_hash(model_name, model.version, cfg, mode))
         return rows
     scale, scale_source = record_absolute_scale(records[usable[0]])
     used_ids = [s.face_id for s in joint.faces if s.used]
@@ -107,7 +164,7 @@ def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorC
             rows[i].update(status="error", message=f"{records[i].face_id} (group {gid}): {type(exc).__name__}: {exc}")
         return rows
     elapsed = time.perf_counter() - t0
-    jhash = joint_hash(model_name, model.version, cfg)
+    jhash = joint_hash(model_name, model.version, cfg, mode)
     for i, share in zip(usable, joint.faces):
         row = rows[i]
         row.update(model_version=str(model.version), config_hash=jhash, group_used=bool(share.used),

@@ -53,6 +53,9 @@ from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
 LINEAR_MIN_ITERS = 50
+EXTRA_ITERS_PER_FACE = 0  # L-BFGS iterations added to max_iter for each face after the first
+EXTRA_ITERS_PER_GAIN = 12  # and for each exposure gain (photos after the first): they start at 1
+AGREEMENT_FLOOR = 0.0  # added to both residuals of an agreement ratio (relative squared residual)
 
 
 class JointProblem:
@@ -168,7 +171,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         raise EstimationError("joint estimate: no usable face (" + "; ".join(s.reason for s in shares) + ")")
     torch.set_num_threads(1)
     seen_agreement: dict[int, float] = {}
-    if disagree_ratio is not None and len(active) > 1 and problems[active[0]].hybrid is not None:
+    if disagree_ratio is not None and len(active) > 2 and problems[active[0]].hybrid is not None:
         support = _consensus(problems, active, cfg, disagree_ratio)
         for i in active:
             if support[i] > disagree_ratio:
@@ -182,13 +185,18 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         agreement = _agreements(problems, fit, cfg) if fit is not None else {}
         seen_agreement.update(agreement)
         worst = max(active, key=lambda i: agreement.get(i, 0.0))
-        if disagree_ratio is not None and len(active) > 1 and agreement.get(worst, 0.0) > disagree_ratio:
-            shares[worst].used = False
+        if disagree_ratio is None or len(active) < 2 or agreement.get(worst, 0.0) <= disagree_ratio:
+            break
+        if len(active) == 2:  # no majority: each face keeps its own light (the lighter-weighted one leaves)
+            weights = dict(zip(active, fit.weights))
+            worst = min(active, key=lambda i: weights[i])
+            shares[worst].reason = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own best, "
+                                    f"limit {disagree_ratio:.2f}): each keeps its own estimate")
+        else:
             shares[worst].reason = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
                                     f"(limit {disagree_ratio:.2f}); left out")
-            active = [i for i in active if i != worst]
-            continue
-        break
+        shares[worst].used = False
+        active = [i for i in active if i != worst]
     for i, s in enumerate(shares):
         s.agreement = seen_agreement.get(i)
     if fit is None:  # one face left: its own estimate
@@ -274,7 +282,7 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
     x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
     x_rho = torch.tensor(np.broadcast_to(np.log(rho0) - np.log1p(-rho0), (B, K, 3)).copy(), dtype=dtype)
-    log_gain0 = _initial_log_gains(jp, scores, found) if jp.hybrid is not None and jp.num_gains else np.zeros(jp.num_gains)
+    log_gain0 = np.zeros(jp.num_gains)  # the search's per-face scales start the gains worse (module docstring)
     x_side = torch.tensor(np.concatenate([np.full((B, K), np.log(g0) - np.log1p(-g0)),
                                           np.broadcast_to(log_gain0, (B, jp.num_gains))], 1), dtype=dtype)
     fixed_rho = None if cfg.fixed_albedo is None else torch.as_tensor(rho0, dtype=dtype)
@@ -303,7 +311,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
 
     t_fit = time.perf_counter()
     variables = (x_theta, x_side, x_rho)
-    budget = max(cfg.max_iter, LINEAR_MIN_ITERS) if first.linear else cfg.max_iter
+    budget = cfg.max_iter + EXTRA_ITERS_PER_FACE * (K - 1) + EXTRA_ITERS_PER_GAIN * jp.num_gains
+    budget = max(budget, LINEAR_MIN_ITERS) if first.linear else budget
     iterations, sun_core = 0, 1.0 if jp.hybrid is not None else 0.0
     if jp.hybrid is not None and B > 1 and 0 < cfg.sun_all_starts_iters < budget:
         variables, its = run_lbfgs(jp, unpack, variables, cfg, cfg.sun_all_starts_iters)
@@ -379,17 +388,6 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
                gain=dict(zip(index, gains.astype(float))), data=dict(zip(index, per_face.astype(float))), index=index)
     fit.problems = jp.faces
     return result, fit
-
-
-def _initial_log_gains(jp: JointProblem, scores, found) -> np.ndarray:
-    """Each later exposure group's log gain from the search: the mean log of its faces' psi (sky +
-    sun, at the best joint candidate) over the first group's."""
-    best = found[0]
-    k = int(np.flatnonzero(scores[0].texels == best.texel)[0])
-    level = np.array([float(np.log(max((s.psi_sky[k, best.shape] + s.psi_sun[k, best.shape]).mean(), 1e-300)))
-                      for s in scores])
-    base = level[jp.group == 0].mean()
-    return np.array([level[jp.group == e].mean() - base for e in range(1, jp.num_gains + 1)])
 
 
 def _stacked_least_squares(jp: JointProblem, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:
@@ -478,7 +476,7 @@ def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: Estim
     rel = sun_search.relative_residual(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
                                        p.grid, texel, np.asarray(sky_block_means), _e_blocks(p), cfg.ground_albedo_init,
                                        np.asarray(w_sky), np.asarray(w_sun))
-    return rel / max(_own_best(p, cfg), 1e-12)
+    return (rel + AGREEMENT_FLOOR) / max(_own_best(p, cfg) + AGREEMENT_FLOOR, 1e-12)
 
 
 def _nearest_texel(grid: LatLongGrid, direction: np.ndarray) -> int:

@@ -21,7 +21,8 @@ from pathlib import Path
 
 from f2l import __version__
 from f2l.estimate.estimator import EstimatorConfig
-from f2l.estimate.group_record import JOINT_MODES, estimate_alone, estimate_group, joint_hash
+from f2l.estimate.group_record import (JOINT_MODES, estimate_alone, estimate_group, estimate_session, group_key,
+                                       joint_hash)
 from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior,  # noqa: F401
                                  config_hash, estimate_record, torch_threads)
 from f2l.io.tables import ESTIMATE_RUN_FILE as RUN_FILE, ESTIMATES_FILE  # noqa: F401 (named in f2l.io: evaluate reads them)
@@ -58,8 +59,9 @@ def run_estimates(
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
     ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
     EstimatorConfig's (ignored with ``config``). ``joint`` "photo": the faces of one photo (records
-    in a row with the same ``source_path``) share one light (f2l.estimate.group_record); "none":
-    every face alone. The Ray executor estimates faces alone."""
+    in a row with the same ``source_path``) share one light (f2l.estimate.group_record);
+    "session": the faces of one session (records in a row with the same ``meta["session"]``),
+    turned into one frame by their cameras' headings; "none": every face alone. The Ray executor estimates faces alone."""
     from f2l.estimate import resume
     from f2l.io.shards import BadRecord, count_records, iter_records, shard_files
     from f2l.io.record_limits import declared_size_problem
@@ -83,7 +85,7 @@ def run_estimates(
     hashes, joint_hashes = {}, {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
         hashes[name] = config_hash(name, model_class(name).version, cfg)
-        joint_hashes[name] = joint_hash(name, model_class(name).version, cfg)
+        joint_hashes[name] = joint_hash(name, model_class(name).version, cfg, joint)
     shard_paths = [str(Path(s).resolve()) for s in shards]
     run_info = {"f2l_version": __version__, "shards": shard_paths, "models": models,
                 "config": asdict(cfg), "config_hashes": hashes, "executor": executor, "joint": joint}
@@ -134,7 +136,7 @@ def run_estimates(
                         continue
                     yield rec, name
                 continue
-            if group and (joint == "none" or rec.source_path != group[0].source_path):
+            if group and group_key(rec, joint) != group_key(group[0], joint):
                 yield from flush()
                 group = []
             group.append(rec)
@@ -177,7 +179,7 @@ def run_estimates(
                             continue
                         yield rec, name
 
-    work = estimate_group if joint == "photo" else estimate_alone
+    work = {"photo": estimate_group, "session": estimate_session, "none": estimate_alone}[joint]
     try:
         if executor == "ray":
             from f2l.estimate.ray_executor import ray_estimate_rows

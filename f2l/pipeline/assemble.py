@@ -145,7 +145,8 @@ def write_shard(cache: Cache, chunk: list[dict], keep_exposure: bool, counts: di
     dict has ``key``, ``entry`` (its fit-faces entry), ``path``, ``session``, ``chart``,
     ``colour`` and ``gt`` (the session's gt-probe entry or None)."""
     inputs = [{"fit": p["key"], "path": p["path"], "session": p["session"],
-               "colour": p["colour"], "gt": None if p["gt"] is None else p["gt"]["key"]}
+               "colour": p["colour"], "gt": None if p["gt"] is None else p["gt"]["key"],
+               **({} if p.get("camera_yaw_deg") is None else {"camera_yaw_deg": p["camera_yaw_deg"]})}
               for p in chunk]
     key = stage_key("shards", SHARDS_VERSION, inputs, {"keep_exposure": bool(keep_exposure)})
 
@@ -167,6 +168,8 @@ def write_shard(cache: Cache, chunk: list[dict], keep_exposure: bool, counts: di
                     record.gt_probe_path = (None if p["gt"] is None
                                             else f"probes/{safe_name(p['session'])}.exr")
                     record.meta["session"] = p["session"]
+                    if p.get("camera_yaw_deg") is not None:  # f2l estimate --joint session turns the face by it
+                        record.meta["camera_yaw_deg"] = float(p["camera_yaw_deg"])
                     record.meta["colour"] = p["colour"]
                     writer.write(record)
                     n += 1

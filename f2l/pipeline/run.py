@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from f2l.capture.view_spec import ViewSpec, ViewSpecError
 from f2l.pipeline import assemble, card, faces, probes
 from f2l.pipeline.plan import plan_sessions, relative_message
 from f2l.pipeline.publish import CARD_NAME, publish, up_to_date
@@ -205,7 +206,11 @@ def _fit_all(cache, root, spec, sessions, counts, timings, landmarker_path, prog
     for plan in sessions:
         fits[plan.name] = []
         for row in plan.faces:
-            fits[plan.name].append(fitter(row, counts["fit-faces"], timings))
+            fit = fitter(row, counts["fit-faces"], timings)
+            yaw = _camera_yaw(row)
+            if yaw is not None:  # the face camera's heading in the session ([[shots]] yaw_deg): joint estimates
+                fit["camera_yaw_deg"] = yaw
+            fits[plan.name].append(fit)
             if bar is not None:
                 bar.update(1)
     if bar is not None:
@@ -304,3 +309,12 @@ def _output_files(spec, shards, photos, state) -> dict:
             files[f"probes/{assemble.safe_name(name)}.exr"] = (
                 str(Path(st["gt"]["entry"]) / "probe.exr"), st["gt"]["key"])
     return files
+
+
+def _camera_yaw(row: dict) -> float | None:
+    """The face photo's camera heading from its session.toml view (``[[shots]]`` ``yaw_deg``), or None."""
+    try:
+        yaw = ViewSpec.from_json(row.get("view_json")).yaw_deg
+    except ViewSpecError:
+        return None
+    return None if yaw is None else float(yaw)
