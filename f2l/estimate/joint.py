@@ -18,7 +18,7 @@ Sun models (capability ``compact-sun``) score every sun direction and sky shape 
 faces at once (``sun_search.combine``), are fitted in psi = mean apparent albedo x weight, and end
 with the sun's elevation profile, as one face is (f2l.estimate.estimator). Linear models start from
 the stacked least squares, other models from their initial points; all then run the same batched
-L-BFGS. Latent-sky models are not supported yet (``JointUnsupported``).
+L-BFGS. Latent-sky models have their own joint fit (f2l.estimate.latent_joint).
 
 Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found from the
 joint fit: face i's ``agreement`` is its relative residual under the joint light (with one free scale
@@ -42,6 +42,7 @@ from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import _sun_share, estimate
 from f2l.estimate.joint_common import (DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult, JointUnsupported,  # noqa: F401
                                        face_noise, face_weights)
+from f2l.estimate.latent_joint import estimate_joint_latent
 from f2l.estimate.lbfgs import minimise, run_lbfgs
 from f2l.estimate.observation import EstimationError, FaceObservation
 from f2l.estimate.params import BoxTransform
@@ -149,7 +150,8 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     if K == 0:
         raise EstimationError("joint estimate: no faces")
     if isinstance(model, LatentSky) and K > 1:
-        return _latent_joint(observations, model, cfg, exposure_group, pixel_rc, disagree_ratio)
+        return estimate_joint_latent(observations, model, cfg, exposure_group=exposure_group, pixel_rc=pixel_rc,
+                                     disagree_ratio=disagree_ratio)  # f2l.estimate.latent_joint
     groups = _renumber(exposure_group if exposure_group is not None else [0] * K)
     noise = [face_noise(o, None if pixel_rc is None else pixel_rc[i]) for i, o in enumerate(observations)]
     shares = [FaceShare(face_id=o.face_id, weight=0.0) for o in observations]
@@ -210,17 +212,6 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     result.runtime_s = time.perf_counter() - t_start
     result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
     return JointResult(result, shares)
-
-
-def _latent_joint(observations, model, cfg, exposure_group, pixel_rc, disagree_ratio) -> JointResult:
-    """Latent-sky models (capability ``latent-sky``): f2l.estimate.latent_joint where present."""
-    try:
-        from f2l.estimate.latent_joint import estimate_joint_latent
-    except ImportError:
-        raise JointUnsupported(f"model {model.name!r} (latent-sky): joint estimation is not available for "
-                               "latent-sky models yet; estimate its faces one by one") from None
-    return estimate_joint_latent(observations, model, cfg, exposure_group=exposure_group, pixel_rc=pixel_rc,
-                                 disagree_ratio=disagree_ratio)
 
 
 def _renumber(groups) -> np.ndarray:
