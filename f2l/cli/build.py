@@ -22,6 +22,7 @@ from typing import Optional
 import typer
 
 from f2l.cli.common import JsonOut
+from f2l.cli.progress import progress_bars
 
 
 def build_dataset_cmd(
@@ -42,15 +43,15 @@ def build_dataset_cmd(
     from f2l.face.landmarker import LandmarkerError
     from f2l.pipeline.build import build_dataset
     from f2l.pipeline.cache import LockHeld
-    from f2l.pipeline.ray_build import ExecutorUnavailable
+    from f2l.io.executor import ExecutorUnavailable
     from f2l.face.mesh import FaceMeshError
 
     echo = None if json_out else (lambda line: typer.echo(line, err=True))
     try:
-        summary = build_dataset(root, work, out, pipeline, landmarker_path=landmarker, echo=echo,
-                                progress=not json_out and sys.stderr.isatty(), executor=executor,
-                                address=address, workers=workers,
-                                allow_outside=True if allow_outside else None)
+        with progress_bars(not json_out and sys.stderr.isatty()) as progress:
+            summary = build_dataset(root, work, out, pipeline, landmarker_path=landmarker, echo=echo,
+                                    progress=progress, executor=executor, address=address, workers=workers,
+                                    allow_outside=True if allow_outside else None)
     except LockHeld as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=3)

@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from f2l.cli.common import JsonOut, Seed, exit_for, fail as _fail
+from f2l.cli.progress import progress_bars
 
 
 def models(json_out: JsonOut = False) -> None:
@@ -108,25 +109,27 @@ def estimate(
         from f2l.face.mesh import FaceMeshError
 
         try:
-            fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=not json_out)
+            with progress_bars(not json_out) as progress:
+                fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=progress)
         except (LandmarkerError, FaceMeshError) as exc:
             _fail(str(exc))
         shards = [s for s in shards if not is_photo_input(s)] + fitted["shards"]
         if not shards:
             reasons = "; ".join(r["message"] for r in fitted["photos"][:5])
             _fail(f"no usable face in {len(fitted['photos'])} photo(s): {reasons}")
-    from f2l.estimate.ray_executor import ExecutorUnavailable
+    from f2l.io.executor import ExecutorUnavailable
     from f2l.estimate.runner import run_estimates
     from f2l.models.registry import ModelNotFoundError
 
     try:
-        settings = dict(models=model, workers=workers, threads=threads, max_pixels=max_pixels, max_iter=max_iter,
-                        progress=not json_out, sun_prior=sun_prior, executor=executor, ray_address=address,
-                        skin_gloss=skin_gloss, skin_reflection=skin_reflection)
-        summary = run_estimates(shards, out_dir=out, joint=joint, **settings)
-        if also_single and summary["joint"] != "none":
-            single = run_estimates(shards, out_dir=Path(out) / "single", joint="none", **settings)
-            summary["single"] = {k: single[k] for k in ("out", "total", "ok", "failed", "elapsed_s")}
+        with progress_bars(not json_out) as progress:
+            settings = dict(models=model, workers=workers, threads=threads, max_pixels=max_pixels, max_iter=max_iter,
+                            progress=progress, sun_prior=sun_prior, executor=executor, ray_address=address,
+                            skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+            summary = run_estimates(shards, out_dir=out, joint=joint, **settings)
+            if also_single and summary["joint"] != "none":
+                single = run_estimates(shards, out_dir=Path(out) / "single", joint="none", **settings)
+                summary["single"] = {k: single[k] for k in ("out", "total", "ok", "failed", "elapsed_s")}
     except ModelNotFoundError as exc:
         _fail(str(exc.args[0]))
     except ExecutorUnavailable as exc:

@@ -11,7 +11,8 @@ the output directory, which must therefore be shared with them (a local cluster,
 file system).
 
 ``address``: an existing cluster (``ray://...`` or ``host:port``); None starts a local one with
-``workers`` CPUs for this run and shuts it down afterwards.
+``workers`` CPUs for this run and shuts it down afterwards (:func:`f2l.io.executor.ray_session`).
+A record that cannot be read is the same row as the local executor's (:func:`f2l.estimate.bad_rows.bad_row`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,10 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pyarrow as pa
+
+from f2l.estimate.bad_rows import bad_row
+from f2l.io.executor import ExecutorUnavailable, ray_session  # noqa: F401 (ExecutorUnavailable: named here before)
+from f2l.io.shards import BadRecord
 
 
 class RecordEstimator:
@@ -31,22 +36,20 @@ class RecordEstimator:
         self.models, self.out_dir, self.cfg, self.done = models, out_dir, cfg, done
 
     def __call__(self, batch: pa.Table) -> pa.Table:
-        from f2l.estimate.record import _base_row, estimate_record
+        from f2l.estimate.record import estimate_record
         from f2l.io.shards import FaceRecord
         from f2l.io.tables import rows_to_table, table_row
 
         rows = []
         for i in range(batch.num_rows):
             raw = table_row(batch, i)
+            shard = raw.pop("path", None)  # read_parquet(include_paths=True): the shard file
             try:
                 rec = FaceRecord.from_row(raw)
                 rec.validate()
             except Exception as exc:  # noqa: BLE001 - a bad record becomes rows, not a crash
-                for name in self.models:
-                    row = _base_row({"face_id": raw.get("face_id") or "",
-                                     "source_path": raw.get("source_path") or ""}, name)
-                    row.update(status="bad_record", message=f"{raw.get('face_id')}: {exc}")
-                    rows.append(row)
+                bad = BadRecord(str(shard or raw.get("source_path") or ""), raw.get("face_id"), str(exc))
+                rows.extend(bad_row(bad, name) for name in self.models)
                 continue
             for name in self.models:
                 if (rec.face_id, name) not in self.done:
@@ -54,32 +57,16 @@ class RecordEstimator:
         return rows_to_table(rows, "estimates")
 
 
-class ExecutorUnavailable(RuntimeError):
-    """The chosen executor's optional dependency is not installed."""
-
-
 def ray_estimate_rows(shards, models: list[str], out_dir: str, cfg, done: set, *,
                       address: str | None = None, workers: int = 2) -> Iterator[dict]:
     """Estimate rows (dicts of the ``estimates`` schema) computed on Ray, as they arrive."""
-    try:
-        import ray
-    except ImportError as exc:  # pragma: no cover - depends on the installed extras
-        raise ExecutorUnavailable("--executor ray needs Ray: pip install 'f2l[ray]'") from exc
     from f2l.io.shards import shard_files
 
     files = [str(p) for p in shard_files(shards)]
-    started = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=max(1, int(workers)), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
-        started = True
-    try:
+    with ray_session(address, workers) as ray:
         ctx = ray.data.DataContext.get_current()
         ctx.enable_progress_bars = False
-        ds = ray.data.read_parquet(files, override_num_blocks=max(len(files), int(workers)))
+        ds = ray.data.read_parquet(files, override_num_blocks=max(len(files), int(workers)), include_paths=True)
         threads = max(1, int(cfg.threads))
         # each estimator actor reserves half a CPU slot: ``workers`` actors then leave room for
         # Ray Data's listing and read tasks (1 CPU each), which would otherwise wait forever for
@@ -90,6 +77,3 @@ def ray_estimate_rows(shards, models: list[str], out_dir: str, cfg, done: set, *
                              num_cpus=0.5)
         for batch in out.iter_batches(batch_format="pyarrow", batch_size=None):
             yield from batch.to_pylist()
-    finally:
-        if started:
-            ray.shutdown()

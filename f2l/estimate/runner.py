@@ -1,11 +1,12 @@
 """Bulk estimation over face-record shards: ``f2l estimate``.
 
-Streams records (bounded memory: at most ``2 * workers`` records in flight), estimates each with
-every requested model in a worker process (``executor="local"``, a process pool) or on a Ray
-cluster (``executor="ray"``, :mod:`f2l.estimate.ray_executor`), writes the probe (float32 EXR)
+Streams records (bounded memory: at most ``2 * workers`` groups in flight), estimates each with
+every requested model in a worker process (``executor="local"``, :func:`f2l.io.executor.run_local`)
+or on a Ray cluster (``executor="ray"``, :mod:`f2l.estimate.ray_executor`), writes the probe (float32 EXR)
 and a tone-mapped PNG preview per face and model, and one row per (face, model) to
 ``estimates.parquet``. A bad record or a failed estimate becomes a row with a status and a
-message; the rest go on. Runs resume: pairs already estimated with the same configuration are
+message (:mod:`f2l.estimate.bad_rows`); the rest go on. Progress goes to a callback
+(:mod:`f2l.io.progress`), never to the terminal. Runs resume: pairs already estimated with the same configuration are
 skipped, and a killed run keeps what it finished (:mod:`f2l.estimate.resume`).
 """
 
@@ -15,16 +16,18 @@ import dataclasses
 import json
 import os
 import time
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict
 from pathlib import Path
 
 from f2l import __version__
+from f2l.estimate.bad_rows import DUPLICATE_STATUS, bad_row as _bad_row
 from f2l.estimate.estimator import EstimatorConfig
 from f2l.estimate.group_record import (JOINT_MODES, estimate_alone, estimate_group, estimate_session, group_key,
                                        joint_hash)
 from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior,  # noqa: F401
                                  config_hash, estimate_record, torch_threads)
+from f2l.io.executor import check_executor, run_local
+from f2l.io.progress import Progress, ProgressCallback
 from f2l.io.tables import ESTIMATE_RUN_FILE as RUN_FILE, ESTIMATES_FILE  # noqa: F401 (named in f2l.io: evaluate reads them)
 
 
@@ -46,7 +49,7 @@ def run_estimates(
     threads: int = 2,
     max_pixels: int | None = None,
     max_iter: int = 18,
-    progress: bool = True,
+    progress: ProgressCallback | None = None,
     config: EstimatorConfig | None = None,
     sun_prior: bool = True,
     executor: str = "local",
@@ -67,8 +70,7 @@ def run_estimates(
     from f2l.io.record_limits import declared_size_problem
     from f2l.models.registry import model_class
 
-    if executor not in ("local", "ray"):
-        raise ValueError(f"executor must be 'local' or 'ray', got {executor!r}")
+    check_executor(executor)
     if joint not in JOINT_MODES:
         raise ValueError(f"joint must be one of {', '.join(JOINT_MODES)}, got {joint!r}")
     if executor == "ray":
@@ -102,14 +104,14 @@ def run_estimates(
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     t_start = time.perf_counter()
     parts = resume.PartWriter(out_dir, rows_per_part)
-    bar = _progress(n_tasks, progress)
+    bar = Progress(progress, "estimate", "estimate", n_tasks)
 
     def handle(row: dict) -> None:
         parts.append(row)
         counts["ok" if row["status"] == "ok" else "failed"] += 1
-        if row["status"] != "ok" and progress:
-            bar.write(f"[{row['status']}] {row['message']}")
-        bar.update(1)
+        if row["status"] != "ok":
+            bar.note(f"[{row['status']}] {row['message']}")
+        bar.advance(1)
 
     first_in: dict[str, str] = {}  # face_id -> the shard file it was first read from
 
@@ -123,7 +125,7 @@ def run_estimates(
             for name in models:
                 if all((r.face_id, name) in done for r in group):
                     counts["skipped"] += len(group)
-                    bar.update(len(group))
+                    bar.advance(len(group))
                     continue
                 yield group, name
 
@@ -132,7 +134,7 @@ def run_estimates(
                 for name in models:
                     if not rec.reason.startswith("duplicate face_id") and (rec.face_id, name) in done:
                         counts["skipped"] += 1
-                        bar.update(1)
+                        bar.advance(1)
                         continue
                     yield rec, name
                 continue
@@ -175,51 +177,35 @@ def run_estimates(
                             continue
                         if skip_done and (rec.face_id, name) in done:
                             counts["skipped"] += 1
-                            bar.update(1)
+                            bar.advance(1)
                             continue
                         yield rec, name
 
     work = {"photo": estimate_group, "session": estimate_session, "none": estimate_alone}[joint]
-    try:
-        if executor == "ray":
-            from f2l.estimate.ray_executor import ray_estimate_rows
 
-            for row in ray_estimate_rows(shards, models, str(out_dir), cfg, done,
-                                         address=ray_address, workers=workers):
-                handle(row)
-        elif workers <= 1:
+    def group_tasks():
+        """(group, model, out, cfg) for each group to estimate; a BadRecord's rows are written
+        as the stream reaches it (between results, as the executor asks for tasks)."""
+        for rec, name in grouped():
+            if isinstance(rec, BadRecord):
+                handle(_bad_row(rec, name))
+                continue
+            yield rec, name, str(out_dir), cfg
+
+    if executor == "ray":
+        from f2l.estimate.ray_executor import ray_estimate_rows
+
+        for row in ray_estimate_rows(shards, models, str(out_dir), cfg, done,
+                                     address=ray_address, workers=workers):
+            handle(row)
+    else:
+        if workers <= 1:
             torch_threads(threads)
-            for rec, name in grouped():
-                if isinstance(rec, BadRecord):
-                    handle(_bad_row(rec, name))
-                    continue
-                for row in work(rec, name, str(out_dir), cfg):
-                    handle(row)
-        else:
-            import multiprocessing
-
-            # spawn, not fork: forking a process whose torch/OpenMP threads are running can deadlock
-            context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(threads,),
-                                     mp_context=context) as pool:
-                pending: set[Future] = set()
-                for rec, name in grouped():
-                    if isinstance(rec, BadRecord):
-                        handle(_bad_row(rec, name))
-                        continue
-                    pending.add(pool.submit(work, rec, name, str(out_dir), cfg))
-                    if len(pending) >= 2 * workers:
-                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in finished:
-                            for row in fut.result():
-                                handle(row)
-                for fut in pending:
-                    for row in fut.result():
-                        handle(row)
-        parts.flush()
-        resume.finalise(out_dir, [], _merged_rows(old_rows, parts.rows))
-    finally:
-        bar.close()
+        for rows in run_local(work, group_tasks(), workers, initializer=_init_worker, initargs=(threads,)):
+            for row in rows:
+                handle(row)
+    parts.flush()
+    resume.finalise(out_dir, [], _merged_rows(old_rows, parts.rows))
     elapsed = time.perf_counter() - t_start
     total = counts["ok"] + counts["failed"]
     return {
@@ -236,16 +222,6 @@ def run_estimates(
         "elapsed_s": round(elapsed, 3),
         "faces_per_minute": round(60.0 * total / elapsed, 2) if elapsed > 0 and total else None,
     }
-
-
-DUPLICATE_STATUS = "duplicate_face_id"
-
-
-def _bad_row(bad, model: str) -> dict:
-    row = _base_row({"face_id": bad.face_id or "", "source_path": bad.source}, model)
-    status = DUPLICATE_STATUS if bad.reason.startswith("duplicate face_id") else "bad_record"
-    row.update(status=status, message=str(bad))
-    return row
 
 
 def _merged_rows(old_rows: list[dict], new_rows: list[dict]) -> list[dict]:
@@ -269,23 +245,3 @@ def _write_json_atomic(path: Path, obj) -> None:
     from f2l.io.atomic import write_text_atomic
 
     write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=True))
-
-
-class _NoBar:
-    def update(self, n=1):
-        pass
-
-    def write(self, msg):
-        pass
-
-    def close(self):
-        pass
-
-
-def _progress(total, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, unit="estimate", dynamic_ncols=True)
-    return bar

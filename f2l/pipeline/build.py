@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from f2l.io.executor import check_executor
+from f2l.io.progress import ProgressCallback
 from f2l.pipeline.cache import BuildLock, Cache, new_build_token
 from f2l.pipeline.spec import Pipeline, load_pipeline
 
@@ -122,21 +124,22 @@ def _append_log(work: Path, entry: dict) -> None:
 
 
 def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None = None, *,
-                  landmarker_path=None, echo=None, progress: bool = False, executor: str = "local",
+                  landmarker_path=None, echo=None, progress: ProgressCallback | None = None, executor: str = "local",
                   address: str | None = None, workers: int = 2,
                   allow_outside: bool | None = None) -> BuildSummary:
     """Build (or bring up to date) the shard folder ``out`` from the capture tree ``root``
     (None: the one a previous build in ``work`` used). ``pipeline``: a :class:`Pipeline`, a
     TOML path, or None for ``pipelines/face2light.toml``. ``echo(str)`` receives one line per
-    stage as it finishes; ``progress`` shows a bar while faces are fitted. Raises
+    stage as it finishes; ``progress`` (a callback, :mod:`f2l.io.progress`) is told of each face
+    photo fitted. Raises
     :class:`~f2l.pipeline.cache.LockHeld`, :class:`~f2l.pipeline.spec.PipelineError`,
-    FileNotFoundError or ValueError (WORK or OUT inside ROOT) before writing anything.
+    FileNotFoundError or ValueError (WORK or OUT inside ROOT, an unknown executor) before writing
+    anything, :class:`~f2l.io.executor.ExecutorUnavailable` (Ray not installed).
     ``executor`` "ray": the per-item stages run as Ray tasks (:mod:`f2l.pipeline.ray_build`) on
     the cluster at ``address``, or on a local one with ``workers`` CPUs; the output is the same.
     ``allow_outside``: None keeps the pipeline's ingest ``allow_outside``; True or False overrides
     it (:func:`with_allow_outside`), and the card's pipeline records the value used."""
-    if executor not in ("local", "ray"):
-        raise ValueError(f"executor must be local or ray, got {executor!r}")
+    check_executor(executor)
     spec = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
     if allow_outside is not None:
         spec = with_allow_outside(spec, allow_outside)

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 
 from f2l.face.run import PHOTO_EXTENSIONS, RAW_EXTENSIONS, expand_photos, printable, printable_path
+from f2l.io.progress import Progress, ProgressCallback
 
 FACES_DIR = "faces"
 
@@ -33,10 +34,11 @@ def is_photo_input(path: str | os.PathLike) -> bool:
 
 
 def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = None,
-               progress: bool = True) -> dict:
+               progress: ProgressCallback | None = None) -> dict:
     """Fit every face of the photos under ``inputs`` (files or folders) into the cache under
     ``OUT/faces``; returns ``{"shards": [entry folders with records], "photos": [per-photo status
-    rows], "counts": {status: n, "reused": n, "computed": n}}``."""
+    rows], "counts": {status: n, "reused": n, "computed": n}}``. ``progress``: a callback told of
+    each photo and of each photo that is not ok, with its reason (:mod:`f2l.io.progress`)."""
     from f2l.io.hashing import file_sha256
     from f2l.pipeline.cache import Cache
     from f2l.pipeline.faces import FaceFitter
@@ -52,12 +54,8 @@ def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = No
     files = expand_photos(inputs)
     counts: dict = {}
     rows, shards = [], []
-    iterator = files
-    if progress and len(files) > 1:
-        from tqdm import tqdm
-
-        iterator = tqdm(files, unit="photo", desc="fit faces")
-    for path in iterator:
+    bar = Progress(progress, "fit faces", "photo", len(files))
+    for path in files:
         shown = printable_path(path)
         if shown != str(path):
             row = {"source_path": shown, "status": "error", "face_ids": [], "rejected": [],
@@ -65,10 +63,8 @@ def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = No
                               f"shown as \\xNN); rename the file to estimate it"}
             counts["error"] = counts.get("error", 0) + 1
             rows.append(row)
-            if progress:
-                from tqdm import tqdm
-
-                tqdm.write(f"error: {row['message']}")
+            bar.note(f"error: {row['message']}")
+            bar.advance(1)
             continue
         try:
             sha = file_sha256(path)
@@ -88,8 +84,7 @@ def fit_photos(inputs, out: str | os.PathLike, *, min_face_px: float | None = No
                 shards.append(Path(result["entry"]))
         counts[row["status"]] = counts.get(row["status"], 0) + 1
         rows.append(row)
-        if progress and row["status"] != "ok":
-            from tqdm import tqdm
-
-            tqdm.write(f"{row['status']}: {row['message']}")
+        if row["status"] != "ok":
+            bar.note(f"{row['status']}: {row['message']}")
+        bar.advance(1)
     return {"shards": shards, "photos": rows, "counts": counts}

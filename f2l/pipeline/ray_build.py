@@ -20,18 +20,17 @@ build's token (``WORK/.build-token``, renewed by each build before its sweep) an
 once a new build has begun (:class:`~f2l.pipeline.cache.StaleBuild`).
 
 ``address``: an existing cluster; None starts a local one with ``workers`` CPUs for the build and
-shuts it down afterwards.
+shuts it down afterwards (:func:`f2l.io.executor.ray_session`, as ``f2l estimate --executor ray``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from f2l.io.executor import ExecutorUnavailable, ray_session
+from f2l.io.progress import Progress, ProgressCallback
+
 __all__ = ["prewarm", "ExecutorUnavailable"]
-
-
-class ExecutorUnavailable(RuntimeError):
-    """Ray is not installed."""
 
 
 def _merge(work: str, token: str, root: str, plan, bid: str, params: dict) -> int:
@@ -88,33 +87,19 @@ def _finished(ray, ref) -> int:
 
 
 def prewarm(spec, root: Path, work: Path, sessions: list, landmarker_path=None, *, token: str,
-            address: str | None = None, workers: int = 2, progress=None) -> dict[str, int]:
+            address: str | None = None, workers: int = 2,
+            progress: ProgressCallback | None = None) -> dict[str, int]:
     """Make every per-item cache entry of ``sessions`` on Ray; returns entries computed per stage,
     and under ``"failed"`` the number of merge/sphere or calibrate tasks that raised (none when
     nothing did). A task that raises stops nothing: its entry is left unmade, and the local pass
     that follows computes it as a local build does, recording the failure for that session or
-    chart alone (:func:`f2l.pipeline.run._session_probe`)."""
-    try:
-        import ray
-        from ray.util import ActorPool
-    except ImportError as exc:  # pragma: no cover - depends on the installed extras
-        raise ExecutorUnavailable("--executor ray needs Ray: pip install 'f2l[ray]'") from exc
+    chart alone (:func:`f2l.pipeline.run._session_probe`). ``progress``: a callback told of each
+    face photo fitted (:mod:`f2l.io.progress`)."""
+    with ray_session(address, workers) as ray:
+        from ray.util import ActorPool  # a part of ray, which ray_session has imported
 
-    started = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            # "local": a new cluster of our own, never one a killed build left behind
-            ray.init(address="local", num_cpus=max(1, int(workers)), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
-        started = True
-    try:
         return _run(ray, ActorPool, spec, str(root), str(work), token, sessions, landmarker_path,
                     max(1, int(workers)), progress)
-    finally:
-        if started:
-            ray.shutdown()
 
 
 def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list, landmarker_path,  # noqa: N803
@@ -145,6 +130,7 @@ def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list,
                             landmarker_path)
               for _ in range(min(workers, max(1, len(rows))))] if rows else []
     pool = ActorPool(actors) if actors else None
+    bar = Progress(progress, "fit-faces (ray)", "photo", len(rows))
     for row in rows:
         pool.submit(lambda actor, r: actor.fit.remote(r), row)
     while pending or (pool is not None and pool.has_next()):  # both streams, as results arrive
@@ -171,6 +157,5 @@ def _run(ray, ActorPool, spec, root: str, work: str, token: str, sessions: list,
                 counts["fit-faces"] += pool.get_next_unordered(timeout=0.05)
             except TimeoutError:
                 continue
-            if progress is not None:
-                progress(1)
+            bar.advance(1)
     return counts

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from f2l.capture.view_spec import ViewSpec, ViewSpecError
+from f2l.io.progress import Progress, ProgressCallback
 from f2l.pipeline import assemble, card, faces, probes
 from f2l.pipeline.plan import plan_sessions, relative_message
 from f2l.pipeline.publish import CARD_NAME, publish, up_to_date
@@ -108,10 +109,11 @@ def _photo_left_out(fit: dict) -> list[dict]:
 
 
 def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmarker_path,
-               say, progress: bool = False, executor: dict | None = None) -> None:
+               say, progress: ProgressCallback | None = None, executor: dict | None = None) -> None:
     """Ingest → plan → probes, charts → faces → pairing, shards → card → publish. ``executor``:
     ``{"name": "ray", "address": ..., "workers": N}`` makes the per-item entries on Ray first
-    (:mod:`f2l.pipeline.ray_build`); the local pass then only reads them."""
+    (:mod:`f2l.pipeline.ray_build`); the local pass then only reads them. ``progress``: a callback
+    told of each face photo fitted (:mod:`f2l.io.progress`)."""
     clock = _Clock(summary, say)
     rows = _ingest(spec, root, work, summary)
     clock.lap("ingest", f"{summary.ingest['read']} read, {summary.ingest['reused']} unchanged")
@@ -126,7 +128,8 @@ def run_stages(spec, root: Path, work: Path, out: Path, cache, summary, landmark
         from f2l.pipeline.ray_build import prewarm
 
         on_ray = prewarm(spec, root, work, sessions, landmarker_path, token=executor["token"],
-                         address=executor.get("address"), workers=int(executor.get("workers", 2)))
+                         address=executor.get("address"), workers=int(executor.get("workers", 2)),
+                         progress=progress)
         failed = on_ray.pop("failed", 0)  # tasks that raised: computed (and recorded) below
         summary.on_executor = dict(on_ray)
         clock.lap("ray", ", ".join(f"{k} {v}" for k, v in on_ray.items()) + " entries made on Ray"
@@ -194,14 +197,10 @@ def _probes_and_charts(cache, root, spec, sessions, counts, timings, left_out, w
 
 
 def _fit_all(cache, root, spec, sessions, counts, timings, landmarker_path, progress) -> dict:
-    """{session: [fit-faces result per face photo, by path]}, with a progress bar if asked."""
+    """{session: [fit-faces result per face photo, by path]}; each photo fitted is told to ``progress``."""
     fitter = faces.FaceFitter(cache, root, spec.params("fit-faces"), spec.params("transport"),
                               (spec.grid_height, spec.grid_width), landmarker_path)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=sum(len(p.faces) for p in sessions), unit="photo", desc="fit-faces")
+    bar = Progress(progress, "fit-faces", "photo", sum(len(p.faces) for p in sessions))
     fits = {}
     for plan in sessions:
         fits[plan.name] = []
@@ -211,10 +210,7 @@ def _fit_all(cache, root, spec, sessions, counts, timings, landmarker_path, prog
             if yaw is not None:  # the face camera's heading in the session ([[shots]] yaw_deg): joint estimates
                 fit["camera_yaw_deg"] = yaw
             fits[plan.name].append(fit)
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.advance(1)
     return fits
 
 
