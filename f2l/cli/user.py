@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import JsonOut, Seed, exit_for, fail as _fail
+from f2l.cli.common import JsonOut, Seed, estimate_settings, exit_for, fail as _fail, print_settings
 from f2l.cli.progress import progress_bars
 
 
@@ -62,11 +62,11 @@ def estimate(
     executor: str = typer.Option("local", help="local (a process pool on this machine) or ray (Ray Data; needs the 'ray' extra)."),
     address: Optional[str] = typer.Option(None, help="Ray cluster address for --executor ray (default: start a local Ray with --workers CPUs)."),
     max_pixels: Optional[int] = typer.Option(None, help="Use at most this many face pixels per face."),
-    max_iter: int = typer.Option(18, help="L-BFGS iterations of non-linear models (sunsky: all phases together)."),
-    sun_prior: bool = typer.Option(
-        True, "--sun-prior/--no-sun-prior",
+    max_iter: Optional[int] = typer.Option(None, help="L-BFGS iterations of non-linear models (sunsky: all phases together; default 18)."),
+    sun_prior: Optional[bool] = typer.Option(
+        None, "--sun-prior/--no-sun-prior",
         help="Constrain the sun's elevation from the photo's capture time and GPS position (EXIF or "
-             "the record's meta 'capture'); sun models only. The heading is unknown: azimuth stays free."),
+             "the record's meta 'capture'); sun models only (default on). The heading is unknown: azimuth stays free."),
     skin_gloss: Optional[float] = typer.Option(
         None, "--skin-gloss", min=0.0, max=1.0,
         help="The skin's gloss, an achromatic albedo added to the diffuse one (sun models; default "
@@ -86,6 +86,13 @@ def estimate(
              "says so and groups by photo); none: every face alone."),
     also_single: bool = typer.Option(
         False, "--also-single", help="With --joint photo or session, also estimate every face alone into OUT/single (for comparison)."),
+    set_: Optional[list[str]] = typer.Option(
+        None, "--set", metavar="NAME=VALUE",
+        help="An estimator setting (repeatable), e.g. --set sun_starts=5 --set fixed_albedo=0.5,0.4,0.3 "
+             "(None for none; tuples comma-separated). --settings lists them."),
+    settings_flag: bool = typer.Option(
+        False, "--settings", is_eager=True, expose_value=False, callback=print_settings,
+        help="List the estimator's settings (for --set) by group, with defaults and help, and exit."),
     json_out: JsonOut = False,
 ) -> None:
     """Estimate an HDR probe for every face record with the given lighting model(s); reruns skip
@@ -95,6 +102,8 @@ def estimate(
     written. Exit code 4 when some failed, 1 when none succeeded."""
     from f2l.pipeline.photos import fit_photos, is_photo_input
 
+    config_settings = estimate_settings(set_, max_iter=max_iter, max_pixels=max_pixels, sun_prior_from_capture=sun_prior,
+                                        skin_gloss=skin_gloss, skin_reflection=skin_reflection)
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
         _fail(f"no such photo or shard path: {', '.join(missing)}")
@@ -123,9 +132,8 @@ def estimate(
 
     try:
         with progress_bars(not json_out) as progress:
-            settings = dict(models=model, workers=workers, threads=threads, max_pixels=max_pixels, max_iter=max_iter,
-                            progress=progress, sun_prior=sun_prior, executor=executor, ray_address=address,
-                            skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+            settings = dict(models=model, workers=workers, threads=threads, progress=progress, executor=executor,
+                            ray_address=address, settings=config_settings)
             summary = run_estimates(shards, out_dir=out, joint=joint, **settings)
             if also_single and summary["joint"] != "none":
                 single = run_estimates(shards, out_dir=Path(out) / "single", joint="none", **settings)

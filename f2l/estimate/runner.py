@@ -58,10 +58,14 @@ def run_estimates(
     skin_gloss: float | None = None,
     skin_reflection: float | None = None,
     joint: str = "photo",
+    settings: dict | None = None,
 ) -> dict:
     """Estimate every record of ``shards`` with each of ``models``; returns a summary dict.
-    ``workers`` None: :func:`default_workers`; ``skin_gloss`` and ``skin_reflection`` None:
-    EstimatorConfig's (ignored with ``config``). ``joint`` "photo": the faces of one photo (records
+    ``workers`` None: :func:`default_workers`. ``config`` None: EstimatorConfig with ``threads``,
+    ``max_pixels``, ``max_iter`` and ``sun_prior`` (which are not read with a ``config``). Explicit
+    settings apply to either: ``skin_gloss`` and ``skin_reflection`` when not None, and ``settings``
+    (``{field: value}`` of EstimatorConfig, e.g. from ``f2l estimate --set``; an unknown field is a
+    ValueError). ``progress``: a callback told of each estimate (:mod:`f2l.io.progress`). ``joint`` "photo": the faces of one photo (records
     in a row with the same ``source_path``) share one light (f2l.estimate.group_record);
     "session": the faces of one session (records in a row with the same ``meta["session"]``),
     turned into one frame by their cameras' headings; "none": every face alone. The Ray executor estimates faces alone."""
@@ -80,10 +84,14 @@ def run_estimates(
     workers = default_workers(threads) if workers is None else max(1, int(workers))
     cfg = config or EstimatorConfig(threads=threads, max_pixels=max_pixels, max_iter=max_iter,
                                     sun_prior_from_capture=sun_prior)
-    if config is None and skin_gloss is not None:
-        cfg = dataclasses.replace(cfg, skin_gloss=float(skin_gloss))
-    if config is None and skin_reflection is not None:
-        cfg = dataclasses.replace(cfg, skin_reflection=float(skin_reflection))
+    explicit = {k: float(v) for k, v in (("skin_gloss", skin_gloss), ("skin_reflection", skin_reflection))
+                if v is not None}
+    explicit.update(settings or {})
+    unknown = sorted(set(explicit) - {f.name for f in dataclasses.fields(EstimatorConfig)})
+    if unknown:
+        raise ValueError(f"unknown estimator setting(s) {', '.join(unknown)}")
+    if explicit:
+        cfg = dataclasses.replace(cfg, **explicit)
     hashes, joint_hashes = {}, {}
     for name in models:  # fail fast, with the registry's message, on an unknown model
         hashes[name] = config_hash(name, model_class(name).version, cfg)
