@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from f2l.cli.common import Grid, JsonOut, exit_for, fail, parse_grid
+from f2l.cli.progress import progress_bars
 
 
 def fit_faces_cmd(
@@ -56,8 +57,9 @@ def fit_faces_cmd(
                          transport_pixels=transport_pixels, body_proxy=body_proxy, hairline=hairline,
                          min_face_px=min_face_px)
     try:
-        summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
-                            gt_probes=gt_probes, progress=not json_out)
+        with progress_bars(not json_out) as progress:
+            summary = fit_faces(photos, out, options, overlays=overlays, landmarker_path=landmarker,
+                                gt_probes=gt_probes, progress=progress)
     except (LandmarkerError, FaceMeshError) as exc:
         fail(str(exc))
     typer.echo(json.dumps(summary, indent=None if json_out else 2))

@@ -31,6 +31,7 @@ import numpy as np
 
 from f2l.face.fit import FaceFit, FitOptions, face_record, fit_photo_faces, sky_visibility
 from f2l.io.hashing import file_sha256
+from f2l.io.progress import Progress, ProgressCallback
 
 PHOTO_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
 RAW_EXTENSIONS = {".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".dng", ".raf",
@@ -138,9 +139,10 @@ def _gt_probe(out: Path, fid: str, photo_path: Path, gt_dir: Path | None, grid) 
 
 
 def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool = True,
-              landmarker_path=None, gt_probes=None, progress: bool = True,
+              landmarker_path=None, gt_probes=None, progress: ProgressCallback | None = None,
               records_per_shard: int = 64) -> dict:
-    """Fit every face of every photo into the shard directory ``out``; returns a summary."""
+    """Fit every face of every photo into the shard directory ``out``; returns a summary.
+    ``progress``: a callback told of each photo, and of each one not ok (:mod:`f2l.io.progress`)."""
     from f2l.face.landmarker import FaceLandmarker
     from f2l.io.photo import PhotoError, load_photo
     from f2l.io.shards import ShardWriter
@@ -155,14 +157,10 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
     landmarker = FaceLandmarker(landmarker_path, threads=1)
     counts = {"ok": 0, "no_face": 0, "rejected": 0, "error": 0}
     n_records, per_face_s, t_start = 0, [], time.perf_counter()
-    iterator = files
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(files, unit="photo", desc="fit-faces")
+    bar = Progress(progress, "fit-faces", "photo", len(files))
     with ShardWriter(out, records_per_shard=records_per_shard, overwrite=True) as writer, \
             ParquetAppender(out / STATUS_TABLE, "photo_status", rows_per_group=256) as status:
-        for path in iterator:
+        for path in files:
             t0 = time.perf_counter()
             shown = printable_path(path)  # what the tables and messages hold
             row = {"source_path": shown, "sha256": "", "num_detected": 0, "face_ids": [],
@@ -220,10 +218,9 @@ def fit_faces(photos, out, options: FitOptions = FitOptions(), *, overlays: bool
             status.append(row)
             counts[row["status"]] += 1
             n_records += len(row["face_ids"])
-            if row["status"] != "ok" and progress:
-                from tqdm import tqdm
-
-                tqdm.write(f"{row['status']}: {row['message']}")
+            if row["status"] != "ok":
+                bar.note(f"{row['status']}: {row['message']}")
+            bar.advance(1)
     return {
         "out": str(out),
         "photos": len(files),
