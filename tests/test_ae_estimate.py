@@ -13,7 +13,7 @@ from f2l_builtin_models.autoencoder.corpus import random_ae_sky
 from f2l.estimate import EstimatorConfig, FaceObservation, estimate
 from f2l.prior.build import fit_probes
 from f2l.prior.fit_report import write_fit_report
-from f2l.estimate.probe_fit import fit_probe
+from f2l.prior.probe_fit import fit_probe
 from f2l.io.exr import write_exr
 from f2l.lighting.grid import LatLongGrid, angles_from_direction
 from f2l_builtin_models.ae import DEFAULT_WEIGHTS, AE

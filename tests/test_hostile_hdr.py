@@ -263,7 +263,7 @@ def test_overlapping_captures_in_threads_restore_the_descriptors(tmp_path, capfd
     ("{not json", ""),
 ])
 def test_bad_side_files_are_per_probe_errors_naming_file_and_key(tmp_path, side, key):
-    from f2l.estimate.probe_fit import fit_probe_file, read_side_file
+    from f2l.prior.probe_fit import fit_probe_file, read_side_file
     from f2l.lighting.grid import LatLongGrid
     from f2l.models.registry import load_model
 
@@ -278,7 +278,7 @@ def test_bad_side_files_are_per_probe_errors_naming_file_and_key(tmp_path, side,
 
 
 def test_good_side_file_is_accepted(tmp_path):
-    from f2l.estimate.probe_fit import read_side_file
+    from f2l.prior.probe_fit import read_side_file
 
     probe = tmp_path / "p.exr"
     (tmp_path / "p.json").write_text('{"kind": "clear", "sun_direction": [0, 1, 0], "turbidity": 3}')

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from f2l.estimate.probe_fit import EPS, REC709_LUMA, ProbeFitError, fit_probe, probe_fit_loss
+from f2l.prior.probe_fit import EPS, REC709_LUMA, ProbeFitError, fit_probe, probe_fit_loss
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.lighting.resample import resample
 from f2l_builtin_models import sunsky_prior

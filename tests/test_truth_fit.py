@@ -1,6 +1,6 @@
 """eval-real's model-family oracles (f2l.evaluation.truth_fit): a model fitted to the true probe itself,
 as fitted and with its sun moved 5°, cached per case; and the probe fit's guard against a run that
-diverges (f2l.estimate.probe_fit.minimise_restarted)."""
+diverges (f2l.prior.probe_fit.minimise_restarted)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from f2l.estimate.probe_fit import minimise_restarted
+from f2l.prior.probe_fit import minimise_restarted
 from f2l.lighting.grid import LatLongGrid
 from f2l.metrics.lighting import angle_deg
 from f2l.evaluation.eval_report import summary_table
@@ -110,7 +110,7 @@ def test_a_run_that_diverges_returns_its_last_finite_point():
 def test_a_start_whose_intensity_overflows_gives_a_finite_fit(truth):
     """A start with the sun 1e300 × the probe (its log past any float's exp): the fit clamps the log
     intensity, never hands the model a non-finite parameter, and returns a finite fit."""
-    from f2l.estimate.probe_fit import fit_probe
+    from f2l.prior.probe_fit import fit_probe
 
     model = SunSky(GRID)
     start = TRUE.copy()

@@ -99,10 +99,10 @@ def _load_model_or_fail(name: str, grid):
 def _fit_probe_inputs(probes: list[Path], model: str, grid: str, json_out: bool, what: str,
                       out_dir: Optional[Path] = None):
     """(model, fit records, skipped) for the HDR probes found in ``probes``
-    (:func:`f2l.estimate.probe_fit.list_probe_files`; the other files of its folders are named
+    (:func:`f2l.prior.probe_fit.list_probe_files`; the other files of its folders are named
     as skipped on stderr), with a progress bar. Each probe is fitted by
-    :func:`f2l.estimate.probe_fit.fit_probe_files`: a bad one is a record with status "error"."""
-    from f2l.estimate.probe_fit import fit_probe_files, list_probe_files
+    :func:`f2l.prior.probe_fit.fit_probe_files`: a bad one is a record with status "error"."""
+    from f2l.prior.probe_fit import fit_probe_files, list_probe_files
 
     paths, skipped = list_probe_files(probes)
     for message in skipped:

@@ -65,7 +65,6 @@ from pathlib import Path
 import numpy as np
 
 from f2l.estimate.observation import EstimationError
-from f2l.estimate.probe_fit import ProbeFitError
 from f2l.evaluation.compare_geometry import twin_from_mesh
 from f2l.evaluation.photo_residual import PhotoResidual
 from f2l.evaluation.truth_fit import FIT_SUFFIX, MOVED_SUFFIX, MOVED_SUN_DEG, moved_direction, truth_fit
@@ -80,6 +79,7 @@ from f2l.metrics.lighting import cap_mask
 from f2l.metrics.lighting import sun_direction as probe_sun_direction
 from f2l.metrics.render_metrics import image_metrics
 from f2l.metrics.scene import evaluation_scene
+from f2l.prior.probe_fit import ProbeFitError
 
 __all__ = ["baseline_probes", "sun_disk_radius_deg", "without_sun_disk", "sun_moved", "evaluate_real", "diagnostics",
            "write_true_geometry_twins", "case_of_source", "load_cases", "split_of"]

@@ -1,7 +1,7 @@
 """Each lighting model fitted to the true probe itself (no face): what its family can reach.
 
 ``eval-real --fit-truth MODEL`` scores, next to the face estimates, ``MODEL`` fitted directly to
-each case's true probe by :func:`f2l.estimate.probe_fit.fit_probe` (the paper's Table 1 fit: a
+each case's true probe by :func:`f2l.prior.probe_fit.fit_probe` (the paper's Table 1 fit: a
 log-compressed, dω-weighted loss over the model's domain plus each channel's energy). The row,
 "<model> fitted to the truth", is an oracle of the model family: an estimate from a face can come
 near it, not below it, unless the face tells the metric something the probe fit's loss does not
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from f2l.estimate.probe_fit import fit_probe
 from f2l.io.atomic import write_text_atomic
 from f2l.io.exr import read_exr, write_exr
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.registry import load_model
+from f2l.prior.probe_fit import fit_probe
 
 __all__ = ["FIT_SUFFIX", "MOVED_SUFFIX", "MOVED_SUN_DEG", "is_truth_fit", "moved_direction", "truth_fit"]
 
@@ -56,7 +56,7 @@ def truth_fit(truth: np.ndarray, model_name: str, grid: LatLongGrid, case: str,
               cache_dir: Path | None) -> tuple[np.ndarray, np.ndarray | None, float]:
     """(probe (H, W, 3) float64, sun direction or None, fit time in s) of ``model_name`` fitted to
     ``truth`` on ``grid``; from ``cache_dir`` when a matching fit is there. Raises
-    :class:`~f2l.estimate.probe_fit.ProbeFitError` when the probe cannot be fitted."""
+    :class:`~f2l.prior.probe_fit.ProbeFitError` when the probe cannot be fitted."""
     model = load_model(model_name, grid)
     key = {"model": model_name, "model_version": str(model.version), "grid": [grid.height, grid.width]}
     exr = json_path = None

@@ -96,7 +96,7 @@ class LightingModel(ABC):
         return None
 
     def fit_to_probe(self, probe: np.ndarray, **options):
-        """The model's own probe fit (a ``f2l.estimate.probe_fit.ProbeFit``), or None: the generic one."""
+        """The model's own probe fit (a ``f2l.prior.probe_fit.ProbeFit``), or None: the generic one."""
         return None
 
     # -- helpers ---------------------------------------------------------------------------------

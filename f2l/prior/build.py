@@ -1,5 +1,5 @@
 """Build a model's GMM prior from a folder of lat-long sky probes (``f2l prior build``): fit the
-model to every probe (:mod:`f2l.estimate.probe_fit`), then a GMM over ``model.prior_features`` of
+model to every probe (:mod:`f2l.prior.probe_fit`), then a GMM over ``model.prior_features`` of
 the fitted parameters (:func:`f2l.estimate.model_prior.fit_gmm`). The default corpus is
 :mod:`f2l.prior.corpus`; any other folder of lat-long sky EXRs works the same."""
 
@@ -11,13 +11,13 @@ from typing import Callable, Iterable
 import numpy as np
 
 from f2l.estimate.model_prior import GmmPrior, fit_gmm
-from f2l.estimate.probe_fit import ProbeRecord, fit_probe_files, list_probe_files
+from f2l.prior.probe_fit import ProbeRecord, fit_probe_files, list_probe_files
 
 __all__ = ["ProbeRecord", "list_probes", "fit_probes", "build_prior"]
 
 
 def list_probes(inputs: Iterable[str | Path]) -> list[Path]:
-    """The probes :func:`f2l.estimate.probe_fit.list_probe_files` finds: files named directly, and
+    """The probes :func:`f2l.prior.probe_fit.list_probe_files` finds: files named directly, and
     the HDR images (EXR, Radiance, PFM, float TIFF) found, sorted, recursively, in the given
     folders (use ``list_probe_files`` to get the other files of those folders named as skipped)."""
     return list_probe_files(inputs)[0]
@@ -25,11 +25,11 @@ def list_probes(inputs: Iterable[str | Path]) -> list[Path]:
 
 def fit_probes(paths: list[Path], model, progress: Callable | None = None,
                out_dir: str | Path | None = None, **fit_options) -> list[ProbeRecord]:
-    """:func:`f2l.estimate.probe_fit.fit_probe_files`: fit_probe on every path; a bad probe
+    """:func:`f2l.prior.probe_fit.fit_probe_files`: fit_probe on every path; a bad probe
     (unreadable or oversized file, malformed side file, black, uncovered or implausibly bright
     probe, a fit that overflows) gets status 'error' and a message naming it, the rest go on.
     With ``out_dir``, each fitted probe is written there as ``<stem>_<model>.exr``. Each record's
-    ``extra["metrics"]`` holds :func:`f2l.estimate.probe_fit.probe_fit_metrics`, and
+    ``extra["metrics"]`` holds :func:`f2l.prior.probe_fit.probe_fit_metrics`, and
     ``extra["variants"]`` the same for the fit's named variants (e.g. ``ae_ff``)."""
     return fit_probe_files(paths, model, progress=progress, out_dir=out_dir, **fit_options)
 

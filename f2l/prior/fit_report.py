@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from f2l.estimate.probe_fit import ProbeRecord
 from f2l.io.atomic import write_text_atomic
 from f2l.metrics.lighting import PROBE_METRIC_NAMES
+from f2l.prior.probe_fit import ProbeRecord
 
 __all__ = ["write_fit_report", "kind_table", "metrics_table"]
 

@@ -2,12 +2,12 @@
 
 - AE_FF (variant ``ae_ff``): the feed-forward code theta_FF = (log s, encoder(e), phi_sun) of the
   probe's sun-centred, encoded sky (``AE.encode_probe``), decoded: no optimisation.
-- AE (the fit): theta minimising the probe-fit loss E of :mod:`f2l.estimate.probe_fit` (log-
+- AE (the fit): theta minimising the probe-fit loss E of :mod:`f2l.prior.probe_fit` (log-
   compressed Charbonnier over the sky hemisphere, dOmega-weighted, + the relative energy per
   channel) from theta_FF, with torch's L-BFGS (strong Wolfe). The exposure z_0 is fitted as
   z_0 - log s* (s* the probe's mean luminance), so the fit is the same for any exposure.
 
-Both are returned as one :class:`~f2l.estimate.probe_fit.ProbeFit` (the AE fit) whose
+Both are returned as one :class:`~f2l.prior.probe_fit.ProbeFit` (the AE fit) whose
 ``variants["ae_ff"]`` holds the feed-forward one; ``f2l eval fit-probe`` reports both.
 """
 
@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from f2l.estimate.probe_fit import REC709_LUMA, ProbeFit, ProbeFitError, minimise_restarted, probe_fit_loss
+from f2l.prior.probe_fit import REC709_LUMA, ProbeFit, ProbeFitError, minimise_restarted, probe_fit_loss
 
 VARIANT_FF = "ae_ff"
 
