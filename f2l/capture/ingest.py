@@ -4,10 +4,14 @@ What a row says about a file, and how it is decided:
 
 * **kind** from the extension: camera RAW (anything LibRaw opens: CR2, CR3, NEF, ARW, DNG, ...),
   ``image`` (JPEG/PNG/TIFF) or ``hdr`` (an already-merged probe: EXR, Radiance ``.hdr``, PFM).
-* **metadata**: RAW through :func:`f2l.io.raw_meta.read_raw_metadata` (exifread; levels and
-  CFA from the tags of a DNG that states them completely, else one LibRaw decode, because LibRaw
-  reports black/white levels and the CFA only after unpacking: a Canon's black level is measured
-  on masked pixels); images through exifread and Pillow's
+* **metadata**: EXIF of RAW and images through the one reader, :mod:`f2l.io.photo.metadata`
+  (same conventions for both: ``timestamp_utc`` is its ``camera_time``, with sub-seconds and
+  timezone-aware only when the file records a usable offset; GPS where the file has a usable
+  position). RAW through :func:`f2l.io.raw_meta.read_raw_metadata` (levels and CFA from the tags
+  of a DNG that states them completely, else one LibRaw decode, because LibRaw reports
+  black/white levels and the CFA only after unpacking: a Canon's black level is measured on
+  masked pixels); images through :func:`~f2l.io.photo.metadata.read_metadata` (its exifread
+  backend: Pillow's EXIF of a PNG decodes the pixels, so a truncated PNG would fail) and Pillow's
   header, EXR through OpenEXR's header, ``.hdr`` through its text header (no pixel decode).
 * **session** (one site): each top-level sub-folder of DIR is a session; files directly in DIR
   are split into sessions where consecutive capture times are more than ``session_gap_min``
@@ -66,18 +70,18 @@ recomputed from the rows every time (cheap). The table is written atomically.
 
 from __future__ import annotations
 
-import logging
 import math
 import os
 from dataclasses import dataclass, field
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from f2l.capture.session_toml import outside_target
+from f2l.io.photo.metadata import read_metadata
 
-INGEST_VERSION = 2  # 2: session_problem column, brackets split by view, exposure restart and time jump
+INGEST_VERSION = 3  # 2: session_problem column, brackets split by view, exposure restart and time jump;
+# 3: images' EXIF through f2l.io.photo.metadata (sub-seconds, offset and GPS as for RAW)
 RAW_EXTENSIONS = {".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".iiq", ".k25",
                   ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw",
                   ".rw2", ".rwl", ".sr2", ".srf", ".srw", ".x3f"}
@@ -180,46 +184,18 @@ def _raw_meta(path: Path) -> dict:
     return out
 
 
-def _ratio(value) -> float | None:
-    try:
-        v = value.values[0] if hasattr(value, "values") else value
-        v = float(v.num) / float(v.den) if hasattr(v, "den") else float(v)
-        return v if math.isfinite(v) and v > 0 else None
-    except (ZeroDivisionError, TypeError, ValueError, IndexError):
-        return None
-
-
 def _image_meta(path: Path) -> dict:
-    import exifread
     from PIL import Image
 
     out = _empty_meta()
     with Image.open(path) as im:  # header only
         out["width"], out["height"] = int(im.size[0]), int(im.size[1])
-    logging.getLogger("exifread").setLevel(logging.ERROR)  # "file has no EXIF" is not news
-    with open(path, "rb") as fh:
-        tags = exifread.process_file(fh, details=False)
-    make = str(tags.get("Image Make", "")).strip()
-    model = str(tags.get("Image Model", "")).strip()
-    out["camera"] = f"{make} {model}".strip()
-    lens = tags.get("EXIF LensModel")
-    out["lens"] = str(lens).strip() if lens else None
-    out["exposure_s"] = _ratio(tags.get("EXIF ExposureTime"))
-    out["f_number"] = _ratio(tags.get("EXIF FNumber"))
-    out["iso"] = _ratio(tags.get("EXIF ISOSpeedRatings"))
-    out["focal_length_mm"] = _ratio(tags.get("EXIF FocalLength"))
-    out["ev100"] = _ev100(out["exposure_s"], out["f_number"], out["iso"])
-    stamp = tags.get("EXIF DateTimeOriginal") or tags.get("Image DateTime")
-    if stamp:
-        try:
-            out["timestamp_utc"] = datetime.strptime(str(stamp).strip(),
-                                                     "%Y:%m:%d %H:%M:%S").isoformat()
-        except ValueError:
-            pass
-    orient = tags.get("Image Orientation")
-    if orient is not None and getattr(orient, "values", None):
-        v = int(orient.values[0])
-        out["orientation"] = v if 1 <= v <= 8 else 1
+    m = read_metadata(path, backend="exifread")  # header only (module docstring)
+    out.update(camera=f"{m.make or ''} {m.model or ''}".strip(), lens=m.lens, exposure_s=m.exposure_s,
+               f_number=m.f_number, iso=m.iso, ev100=_ev100(m.exposure_s, m.f_number, m.iso),
+               timestamp_utc=m.camera_time.isoformat() if m.camera_time else None,
+               focal_length_mm=m.focal_length_mm, orientation=m.orientation,
+               gps_latitude_deg=m.latitude_deg, gps_longitude_deg=m.longitude_deg, gps_altitude_m=m.altitude_m)
     return out
 
 
