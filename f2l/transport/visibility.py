@@ -42,9 +42,9 @@ Methods
     Failure mode: an occluder, or a gap in one, that lies within a single cell's interior and
     that no centre ray hits.
 
-    Measured (``benchmark_transport``: synthetic head of 20,480 triangles, N = 10,000 pixels,
-    64 x 128 grid, 2 threads on the shared 2-core dev machine; best of 3 interleaved runs, with
-    the range seen over the session under varying background load):
+    Measured (``f2l.dev.bench_transport.benchmark_transport``: synthetic head of 20,480
+    triangles, N = 10,000 pixels, 64 x 128 grid, 2 threads on the shared 2-core dev machine; best
+    of 3 interleaved runs, with the range seen over the session under varying background load):
 
     ==========  ===============  =======  ======================================================
     method      wall s           CPU s    rays
@@ -74,8 +74,8 @@ Methods
     Error of adaptive vs exact: 4.9e-5 of the front-facing bits differ (2.5e-5 of all bits;
     4.0% of pixels have at least one differing bit; every differing texel is a missed grazing
     occlusion within ~3 deg of the pixel's horizon, median 1 deg, so it barely weighs in T).
-    Under a sunny sky (``bench_transport.sunny_sky``: the sun texel carries 10x the sky's
-    irradiance, 0.6% of pixels in its cast shadow, no sun bit differs)
+    Under a sunny sky (``f2l.dev.bench_transport.sunny_sky``: the sun texel carries 10x the
+    sky's irradiance, 0.6% of pixels in its cast shadow, no sun bit differs)
     ``||T_a l - T_e l|| / ||T_e l||`` = 2.1e-6, largest per-pixel relative error 9.3e-4
     (99th percentile 9.2e-6). On the flat occluders of the tests (a square over a
     plane, a box beside a slab) the bits are identical.
