@@ -1,4 +1,5 @@
-"""The doctest examples of f2l.lighting, f2l.metrics and f2l.capture.lens run (issue 41, item 5).
+"""The doctest examples of f2l.lighting, f2l.metrics, f2l.capture.lens and f2l.capture.view_spec run
+(issue 41, item 5).
 
 Every module of those packages must carry at least one example, so this cannot pass vacuously.
 """
@@ -20,7 +21,7 @@ def _modules(package) -> list[str]:
     return [package.__name__] + [f"{package.__name__}.{m.name}" for m in pkgutil.iter_modules(package.__path__)]
 
 
-MODULES = [*_modules(f2l.lighting), *_modules(f2l.metrics), "f2l.capture.lens"]
+MODULES = [*_modules(f2l.lighting), *_modules(f2l.metrics), "f2l.capture.lens", "f2l.capture.view_spec"]
 
 
 @pytest.mark.parametrize("name", MODULES)
