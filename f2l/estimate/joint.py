@@ -20,12 +20,23 @@ with the sun's elevation profile, as one face is (f2l.estimate.estimator). Linea
 the stacked least squares, other models from their initial points; all then run the same batched
 L-BFGS. Latent-sky models have their own joint fit (f2l.estimate.latent_joint).
 
-Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found from the
-joint fit: face i's ``agreement`` is its relative residual under the joint light (with one free scale
-per channel) over its residual under the best light of its own sun search, both in the search's
-metric (``sun_search.relative_residual``). While the worst face's agreement exceeds
-``DISAGREE_RATIO`` it is left out and the rest are fitted afresh, so the result without it is the
-result of the group without that face. A group of one is :func:`f2l.estimate.estimator.estimate`.
+Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found in three
+ways (compact-sun models; docs/experiments/joint_estimate.md):
+
+1. A face's ``agreement`` is its relative residual under a light (one free scale per channel) over
+   its residual under the best light of its own sun search, in the search's metric
+   (``sun_search.relative_residual``). Before any fit, with three faces or more, every face's own
+   best light is tried on every face; the light most faces agree with (within ``DISAGREE_RATIO``)
+   decides who joins (``_consensus``): a shaded face cannot pull the fit's sun away first.
+2. After each fit, while the worst face's agreement with the fitted light exceeds the ratio, it is
+   left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
+   its own light (the darker one leaves the group).
+3. A face far darker than its photo's other faces under the joint light (albedo below
+   ``DARK_RATIO`` x their median) is left out too: under the group's sun a face in shade reads as
+   a much darker skin.
+
+The result without a face is the result of the group without that face, bit for bit. A group of one
+is :func:`f2l.estimate.estimator.estimate`.
 """
 
 from __future__ import annotations
@@ -54,9 +65,8 @@ from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
 LINEAR_MIN_ITERS = 50
-EXTRA_ITERS_PER_FACE = 0  # L-BFGS iterations added to max_iter for each face after the first
+DARK_RATIO = 0.3  # a face whose albedo x exposure is below this x the others' median is left out
 EXTRA_ITERS_PER_GAIN = 12  # and for each exposure gain (photos after the first): they start at 1
-AGREEMENT_FLOOR = 0.0  # added to both residuals of an agreement ratio (relative squared residual)
 
 
 class JointProblem:
@@ -186,18 +196,25 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
                                  [noise[i] for i in active], groups[active])
         agreement = _agreements(problems, fit, cfg) if fit is not None else {}
         seen_agreement.update(agreement)
-        worst = max(active, key=lambda i: agreement.get(i, 0.0))
-        if disagree_ratio is None or len(active) < 2 or agreement.get(worst, 0.0) <= disagree_ratio:
+        if disagree_ratio is None or fit is None:
             break
-        if len(active) == 2:  # no majority: each face keeps its own light (the lighter-weighted one leaves)
-            weights = dict(zip(active, fit.weights))
-            worst = min(active, key=lambda i: weights[i])
-            shares[worst].reason = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own best, "
-                                    f"limit {disagree_ratio:.2f}): each keeps its own estimate")
+        shade = _darkness(fit, active, groups)
+        worst = max(active, key=lambda i: agreement.get(i, 0.0))
+        if agreement.get(worst, 0.0) > disagree_ratio:
+            if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
+                worst = min(active, key=lambda i: shade[i])
+                why = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own best, limit "
+                       f"{disagree_ratio:.2f}): each keeps its own estimate")
+            else:
+                why = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
+                       f"(limit {disagree_ratio:.2f}); left out")
         else:
-            shares[worst].reason = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
-                                    f"(limit {disagree_ratio:.2f}); left out")
-        shares[worst].used = False
+            worst = min(active, key=lambda i: shade[i])
+            if shade[worst] >= DARK_RATIO:
+                break
+            why = (f"too dark for the group's light: its albedo x exposure is {shade[worst]:.2f}x the other faces' "
+                   f"median (limit {DARK_RATIO:.2f}), as a face in shade is; left out")
+        shares[worst].used, shares[worst].reason = False, why
         active = [i for i in active if i != worst]
     for i, s in enumerate(shares):
         s.agreement = seen_agreement.get(i)
@@ -212,6 +229,19 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     result.runtime_s = time.perf_counter() - t_start
     result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
     return JointResult(result, shares)
+
+
+def _darkness(fit: _Fit, active: list[int], groups: np.ndarray) -> dict[int, float]:
+    """Each face's mean albedo under the joint light over the median of the other faces' of its
+    photo (1 where it is alone in its photo): a face in another's shadow or under a hat takes the
+    light the group sees as a far darker skin than its neighbours'. Faces of other photos do not
+    count: their exposure and albedo cannot be told apart."""
+    level = {i: float(np.mean(fit.albedo[j])) for j, i in enumerate(active)}
+    out = {}
+    for i in active:
+        others = [level[o] for o in active if o != i and groups[o] == groups[i]]
+        out[i] = level[i] / max(float(np.median(others)), 1e-12) if others else 1.0
+    return out
 
 
 def _renumber(groups) -> np.ndarray:
@@ -302,7 +332,7 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
 
     t_fit = time.perf_counter()
     variables = (x_theta, x_side, x_rho)
-    budget = cfg.max_iter + EXTRA_ITERS_PER_FACE * (K - 1) + EXTRA_ITERS_PER_GAIN * jp.num_gains
+    budget = cfg.max_iter + EXTRA_ITERS_PER_GAIN * jp.num_gains
     budget = max(budget, LINEAR_MIN_ITERS) if first.linear else budget
     iterations, sun_core = 0, 1.0 if jp.hybrid is not None else 0.0
     if jp.hybrid is not None and B > 1 and 0 < cfg.sun_all_starts_iters < budget:
@@ -467,7 +497,7 @@ def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: Estim
     rel = sun_search.relative_residual(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
                                        p.grid, texel, np.asarray(sky_block_means), _e_blocks(p), cfg.ground_albedo_init,
                                        np.asarray(w_sky), np.asarray(w_sun))
-    return (rel + AGREEMENT_FLOOR) / max(_own_best(p, cfg) + AGREEMENT_FLOOR, 1e-12)
+    return rel / max(_own_best(p, cfg), 1e-12)
 
 
 def _nearest_texel(grid: LatLongGrid, direction: np.ndarray) -> int:
