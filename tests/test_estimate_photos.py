@@ -82,3 +82,23 @@ def test_photos_without_a_usable_face_fail_with_the_reasons(photos, tmp_path):
     res = invoke("estimate", photos / "coffee.jpg", "-m", "sh9", "--out", tmp_path / "est")
     assert res.exit_code == 2
     assert "no usable face" in res.output and "coffee.jpg: no face detected" in res.output
+
+
+def test_the_readmes_own_photo_example_runs_as_written(tmp_path):
+    """README: `.venv/bin/f2l estimate photo.jpg --model sunsky --out est/`, run in a folder
+    holding a photo of one's own (here scikit-image's astronaut), gives a probe and the table."""
+    import shlex
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = next(ln.strip() for ln in readme.splitlines() if ln.strip().startswith(".venv/bin/f2l estimate photo.jpg"))
+    args = shlex.split(line)[1:]
+    Image.fromarray(skdata.astronaut()).save(tmp_path / "photo.jpg", quality=92)
+    proc = subprocess.run([sys.executable, "-m", "f2l.cli", *args], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    rows = pq.read_table(tmp_path / "est" / "estimates.parquet").to_pylist()
+    assert [r["status"] for r in rows] == ["ok"] and rows[0]["model"] == "sunsky"
+    assert (tmp_path / "est" / rows[0]["probe_path"]).is_file() and rows[0]["probe_path"].startswith("probes/sunsky/")
