@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from f2l.cli.common import JsonOut, exit_for
+from f2l.cli.progress import progress_bars
 
 
 def calibrate_cmd(
@@ -31,8 +32,9 @@ def calibrate_cmd(
     if not expand_photos(chart_photos):
         typer.echo("f2l: error: no photos found in " + ", ".join(map(str, chart_photos)), err=True)
         raise typer.Exit(code=2)
-    results = calibrate(chart_photos, out, edition=chart, method=method, reports=reports,
-                        progress=not json_out)
+    with progress_bars(not json_out) as progress:
+        results = calibrate(chart_photos, out, edition=chart, method=method, reports=reports,
+                            progress=progress)
     summary = summarise(results, out)
     typer.echo(json.dumps(summary) if json_out else format_summary(summary))
     if all(r.status in ("no_chart", "error") for r in results):

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 from f2l.colour.chart import DEFAULT_EDITION, reference_chart
 from f2l.colour.detect import VARIANTS, ChartDetection, detect_chart
 from f2l.colour.fit import ChartFit, ColourCorrection, apply_correction, fit_correction, resolve_method
+from f2l.io.progress import Progress, ProgressCallback
 
 __all__ = ["CalibrationResult", "apply_correction", "calibrate", "calibrate_photo", "format_summary",
            "read_corrections", "summarise"]
@@ -121,11 +121,12 @@ def _report_stem(path: Path, used: set[str]) -> str:
 
 
 def calibrate(chart_photos, out_dir, *, edition: str = DEFAULT_EDITION, method: str = "3x3",
-              reports: bool = True, progress: bool = False) -> list[CalibrationResult]:
+              reports: bool = True, progress: ProgressCallback | None = None) -> list[CalibrationResult]:
     """Calibrate every chart photo (files, or folders searched recursively) into ``out_dir``.
 
     ``method``: ``3x3`` or ``root-polynomial``; ``edition``: a 24-patch name of
     ``colour.CCS_COLOURCHECKERS``. Bad values raise ValueError before anything is written.
+    ``progress``: a callback told of each photo, and of each one not ok (:mod:`f2l.io.progress`).
     """
     from f2l.io.photo import PhotoError, load_photo
     from f2l.face.run import expand_photos
@@ -136,15 +137,11 @@ def calibrate(chart_photos, out_dir, *, edition: str = DEFAULT_EDITION, method: 
     out = Path(out_dir)
     (out / REPORTS_DIR).mkdir(parents=True, exist_ok=True)
     files = expand_photos(chart_photos)
-    iterator = files
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(files, unit="photo", desc="calibrate")
+    bar = Progress(progress, "calibrate", "photo", len(files))
     results: list[CalibrationResult] = []
     used_stems: set[str] = set()
     with ParquetAppender(out / TABLE_NAME, SCHEMA, rows_per_group=256) as table:
-        for path in iterator:
+        for path in files:
             t0 = time.perf_counter()
             result = CalibrationResult(str(path), "error", "", ColourCorrection.identity(), edition)
             try:
@@ -174,10 +171,9 @@ def calibrate(chart_photos, out_dir, *, edition: str = DEFAULT_EDITION, method: 
             result.seconds = time.perf_counter() - t0
             table.append(result.row())
             results.append(result)
-            if progress and result.status != "ok":
-                from tqdm import tqdm
-
-                tqdm.write(f"{result.status}: {result.reason}", file=sys.stderr)
+            if result.status != "ok":
+                bar.note(f"{result.status}: {result.reason}")
+            bar.advance()
     return results
 
 
