@@ -14,6 +14,7 @@ from f2l.capture import ingest as ing
 from f2l.capture import session_toml as st
 from f2l.capture.view_spec import ViewSpec, ViewSpecError
 from f2l.io.hashing import file_sha256
+from f2l.io.progress import Progress, ProgressCallback
 
 TABLE_NAME = "captures.parquet"
 
@@ -109,7 +110,7 @@ def _unchanged(old: dict | None, stat: os.stat_result) -> bool:
 
 def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
                session_gap_min: float = 30.0, bracket_gap_s: float = 15.0,
-               detect_roles: bool = True, progress: bool = False, workers: int | None = None,
+               detect_roles: bool = True, progress: ProgressCallback | None = None, workers: int | None = None,
                allow_outside: bool = False) -> ing.IngestSummary:
     """Ingest the tree under ``root`` into ``work/captures.parquet``; returns counts.
 
@@ -117,7 +118,8 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
     SHA-256 and a LibRaw decode, the costly parts, release the GIL; each holds one file at a time.
     ``allow_outside``: files a session.toml names (a flat field) may lie outside the session
     folder (absolute paths, ``..``, symlinks out), and capture files that are symbolic links out
-    of the tree are read; by default both are refused (``error`` rows)."""
+    of the tree are read; by default both are refused (``error`` rows). ``progress``: a callback
+    told of each file read or reused (:mod:`f2l.io.progress`)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from f2l.io.tables import rows_to_table, write_table_atomic
@@ -154,12 +156,11 @@ def run_ingest(root: str | os.PathLike, work: str | os.PathLike, *,
 
     n_workers = max(1, min(4, os.cpu_count() or 1) if workers is None else int(workers))
     with ThreadPoolExecutor(max_workers=n_workers) as pool:
-        results = pool.map(one, todo)  # in scan order
-        if progress:
-            from tqdm import tqdm
-
-            results = tqdm(results, total=len(todo), desc="ingest", unit="file")
-        rows = list(results)
+        bar = Progress(progress, "ingest", "file", len(todo))
+        rows = []
+        for row in pool.map(one, todo):  # in scan order
+            rows.append(row)
+            bar.advance()
     summary.reused = sum(item[3] is not None for item in todo)
     summary.read = len(todo) - summary.reused
     _derive(root, rows, session_gap_min, bracket_gap_s, detect_roles, summary, allow_outside)

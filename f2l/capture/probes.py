@@ -49,6 +49,7 @@ import numpy as np
 from f2l.capture.probe_rows import _row, _safe, _write_mask_png, checked_rows, finite_row
 from f2l.capture.view_spec import ViewSpec, ViewSpecError
 from f2l.capture.views import ViewOptions, _finish_one, _merge_frames, _set_sun
+from f2l.io.progress import Progress, ProgressCallback
 
 
 @dataclass
@@ -281,10 +282,12 @@ def _sessions_without_probe(captures: list[dict], rows: list[dict]) -> list[dict
 
 def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height: int = 128,
                 grid_width: int | None = None, view_max_side: int = 1024, colour_space: str = "rec709",
-                restore_sun: bool = False, full_probe: bool = False, progress: bool = False) -> ProbesSummary:
+                restore_sun: bool = False, full_probe: bool = False,
+                progress: ProgressCallback | None = None) -> ProbesSummary:
     """Run the merge and sphere stages for every session of ``work/captures.parquet`` (probe grid
     ``grid_height`` x ``grid_width``, default 2 x height; ``restore_sun``, ``full_probe``: see
-    :func:`assemble_session`)."""
+    :func:`assemble_session`). ``progress``: a callback told of each bracket merged
+    (:mod:`f2l.io.progress`)."""
     import pyarrow.parquet as pq
 
     from f2l.io.tables import rows_to_table, write_table_atomic
@@ -309,11 +312,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
     # a time; the previous one's downsampling and files are written by a thread meanwhile, and
     # the next one's first two frames are decoded as soon as this one's last is under way.
     items = sorted(brackets.items(), key=lambda item: (item[1][0]["session"], item[0]))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(items), desc="merge", unit="bracket")
+    bar = Progress(progress, "merge", "bracket", len(items))
     views: list = []
     spaces: list = []
 
@@ -331,8 +330,7 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
             summary.views += 1
             views.append(view)
             spaces.append(row["colour_space"])
-        if bar is not None:
-            bar.update(1)
+        bar.advance()
 
     def assemble(session: str) -> None:
         if views:
@@ -376,8 +374,6 @@ def make_probes(root: str | os.PathLike, work: str | os.PathLike, *, grid_height
         if pending is not None:
             collect(pending)
         assemble(session)
-    if bar is not None:
-        bar.close()
     for r in captures:  # already-merged probes
         if r["role"] == "probe" and r["kind"] == "hdr":
             summary.rows.append(_given_row(root, r, grid_height, grid_width))

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from f2l.cli.common import JsonOut, exit_for
+from f2l.cli.progress import progress_bars
 
 
 def ingest_cmd(
@@ -26,9 +27,10 @@ def ingest_cmd(
     from f2l.capture.manifest import run_ingest
 
     try:
-        summary = run_ingest(root, work, session_gap_min=session_gap_min,
-                             bracket_gap_s=bracket_gap_s, detect_roles=detect_roles,
-                             progress=not json_out, allow_outside=allow_outside)
+        with progress_bars(not json_out) as progress:
+            summary = run_ingest(root, work, session_gap_min=session_gap_min,
+                                 bracket_gap_s=bracket_gap_s, detect_roles=detect_roles,
+                                 progress=progress, allow_outside=allow_outside)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)
@@ -109,8 +111,10 @@ def make_probes_cmd(
     for problem in session_problems(work):
         typer.echo(f"f2l: warning: {problem} (session ingested without it)", err=True)
     try:
-        summary = make_probes(root, work, grid_height=probe_height, view_max_side=view_max_side,
-                              colour_space=colour, restore_sun=restore_sun, full_probe=full_probe, progress=not json_out)
+        with progress_bars(not json_out) as progress:
+            summary = make_probes(root, work, grid_height=probe_height, view_max_side=view_max_side,
+                                  colour_space=colour, restore_sun=restore_sun, full_probe=full_probe,
+                                  progress=progress)
     except FileNotFoundError as exc:
         typer.echo(f"f2l: error: {exc}", err=True)
         raise typer.Exit(code=2)
