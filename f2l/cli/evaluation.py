@@ -11,6 +11,7 @@ from typing import Optional
 import typer
 
 from f2l.cli.common import JsonOut, fail
+from f2l.cli.progress import progress_bars
 
 
 def render_faces_cmd(
@@ -52,10 +53,11 @@ def render_faces_cmd(
         raise typer.BadParameter(f"must be one of {', '.join(FRAMINGS)}", param_hint="--framing")
     if shade_one and framing != "group":
         raise typer.BadParameter("only with --framing group", param_hint="--shade-one")
-    if framing == "portrait":
-        summary = render_faces(out, n, seed, options, start=start, progress=not json_out)
-    else:
-        summary = render_framed(out, framing, n, seed, options, start=start, progress=not json_out)
+    with progress_bars(not json_out) as progress:
+        if framing == "portrait":
+            summary = render_faces(out, n, seed, options, start=start, progress=progress)
+        else:
+            summary = render_framed(out, framing, n, seed, options, start=start, progress=progress)
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["cases"] and len(summary["errors"]) == summary["cases"]:
         raise typer.Exit(code=1)

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.io.progress import Progress, ProgressCallback
 from f2l.lighting.grid import LatLongGrid, angles_from_direction, direction_from_angles, rotate_y
 
 __all__ = ["RenderOptions", "case_id", "draw_case", "render_faces"]
@@ -266,11 +267,11 @@ def _write_case(out: Path, spec: dict, options: RenderOptions, rendered: dict) -
 
 
 def render_faces(out: Path, n: int, seed: int = 0, options: RenderOptions = RenderOptions(), *,
-                 start: int = 0, progress: bool = True) -> dict:
+                 start: int = 0, progress: ProgressCallback | None = None) -> dict:
     """Render cases ``start .. start + n − 1`` into ``out`` (module docstring); resumable.
 
     A case that fails is recorded with its reason in the summary and ``render_status.json``; the
-    others go on.
+    others go on. ``progress``: a callback told of each case (:mod:`f2l.io.progress`).
     """
     return render_set(out, range(start, start + n), lambda index: draw_case(seed, index, options),
                       lambda spec: render_case(spec, options), options,
@@ -279,26 +280,24 @@ def render_faces(out: Path, n: int, seed: int = 0, options: RenderOptions = Rend
 
 
 def render_set(out: Path, indices, draw, render, options: RenderOptions, *, summary: dict, status_file: str,
-               desc: str, unit: str, progress: bool = True) -> dict:
+               desc: str, unit: str, progress: ProgressCallback | None = None) -> dict:
     """Draw (``draw(index)``), render (``render(spec)``) and write every case of ``indices`` into
     ``out``; a case whose meta exists is skipped (resumable) and a case that fails is recorded
     with its reason in the summary and ``out/status_file``, the others going on. ``summary``
-    holds the caller's own keys; ``faces_rendered`` counts the rendered photos' faces."""
+    holds the caller's own keys; ``faces_rendered`` counts the rendered photos' faces. ``progress``:
+    a callback told of each case, written, skipped or failed (task ``desc``, counted in ``unit``)."""
     from f2l.io.atomic import write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    iterator = indices
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(indices, unit=unit, desc=desc)
+    bar = Progress(progress, desc, unit, len(indices))
     status, t0, rendered_s, faces = {}, time.perf_counter(), [], 0
-    for index in iterator:
+    for index in indices:
         spec = draw(index)
         fid = spec["face_id"]
         if (out / "meta" / f"{fid}.json").is_file():
             status[fid] = "exists"
+            bar.advance()
             continue
         t = time.perf_counter()
         try:
@@ -309,6 +308,7 @@ def render_set(out: Path, indices, draw, render, options: RenderOptions, *, summ
             rendered_s.append(time.perf_counter() - t)
         except Exception as exc:  # noqa: BLE001 - one bad case never stops the set
             status[fid] = f"error: {type(exc).__name__}: {exc}"
+        bar.advance()
     summary = {"out": str(out), "cases": len(status), **summary, "options": asdict(options),
                "ok": sum(v == "ok" for v in status.values()), "faces_rendered": faces,
                "skipped_existing": sum(v == "exists" for v in status.values()),

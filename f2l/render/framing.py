@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.io.progress import ProgressCallback
 from f2l.render.dataset import PROBE_GRID, RenderOptions, _lighting, _rotation, _stream, _sun_of, expose, render_set, render_settings
 from f2l.render.occluder import draw_shade, place_occluder
 
@@ -207,9 +208,10 @@ def _shade(spec: dict, lighting, faces_truth: list[dict], settings, distance: fl
 
 
 def render_framed(out: Path, framing: str, n: int, seed: int = 0, options: RenderOptions = RenderOptions(), *,
-                  start: int = 0, progress: bool = True) -> dict:
+                  start: int = 0, progress: ProgressCallback | None = None) -> dict:
     """Render framed cases ``start .. start + n − 1`` into ``out``; resumable; a failing case is
-    recorded with its reason and the others go on."""
+    recorded with its reason and the others go on. ``progress``: a callback told of each case
+    (:mod:`f2l.io.progress`)."""
     return render_set(out, range(start, start + n), lambda index: draw_framed_case(framing, seed, index, options),
                       lambda spec: render_framed_case(spec, options), options,
                       summary={"framing": framing, "seed": seed}, status_file=f"render_status_{framing}.json",
