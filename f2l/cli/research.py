@@ -5,13 +5,15 @@ Registered by :mod:`f2l.cli.app`."""
 from __future__ import annotations
 
 import json
-import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from f2l.cli.common import Grid, JsonOut, OvercastFraction, Seed, exit_for, fail as _fail, parse_grid as _grid
+from f2l.cli.progress import progress_bars
+from f2l.io.progress import Progress
 
 
 def synth(
@@ -50,11 +52,12 @@ def synth(
         elevation_range = parse_elevation_range(sun_elevation_deg)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--sun-elevation-deg") from exc
-    summary = write_synthetic_shards(
-        out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
-        noise_sigma=noise, specular=specular, visibility_method=visibility, progress=not json_out,
-        sun_elevation_range_deg=elevation_range, capture_meta=capture, features=features,
-    )
+    with progress_bars(not json_out) as progress:
+        summary = write_synthetic_shards(
+            out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
+            noise_sigma=noise, specular=specular, visibility_method=visibility, progress=progress,
+            sun_elevation_range_deg=elevation_range, capture_meta=capture, features=features,
+        )
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
 
 
@@ -77,14 +80,11 @@ def bench(
     typer.echo(f"\nwrote {result['table_md']}, {result['plot_png']}")
 
 
-def _progress(total: int, desc: str, enabled: bool):
-    """(callback(n), close()) over a tqdm bar on stderr, or no-ops when disabled."""
-    if not enabled:
-        return (lambda n=1: None), (lambda: None)
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, desc=desc, unit="probe", file=sys.stderr)
-    return bar.update, bar.close
+@contextmanager
+def _counted(total: int, stage: str, enabled: bool):
+    """A ``step(n)`` callback (n more probes done) drawn as the CLI's bar, or None when not ``enabled``."""
+    with progress_bars(enabled) as bars:
+        yield None if bars is None else Progress(bars, stage, "probe", total).advance
 
 
 def _load_model_or_fail(name: str, grid):
@@ -110,9 +110,8 @@ def _fit_probe_inputs(probes: list[Path], model: str, grid: str, json_out: bool,
     if not paths:
         _fail("no .exr probes found (nor .hdr, .rgbe, .tif, .tiff, .pfm) in " + ", ".join(map(str, probes)))
     m = _load_model_or_fail(model, _grid(grid))
-    step, close = _progress(len(paths), f"{what} {model}", not json_out)
-    records = fit_probe_files(paths, m, progress=step, out_dir=out_dir)
-    close()
+    with _counted(len(paths), f"{what} {model}", not json_out) as step:
+        records = fit_probe_files(paths, m, progress=step, out_dir=out_dir)
     return m, records, skipped
 
 
@@ -151,9 +150,9 @@ def sky_corpus(
     """Write the project's default sky corpus (CIE clear + overcast skies) for `f2l prior build`."""
     from f2l.prior.corpus import write_sky_corpus
 
-    step, close = _progress(n, "sky-corpus", not json_out)
-    paths = write_sky_corpus(out, n, seed=seed, grid=_grid(grid), overcast_fraction=overcast_fraction, progress=step)
-    close()
+    with _counted(n, "sky-corpus", not json_out) as step:
+        paths = write_sky_corpus(out, n, seed=seed, grid=_grid(grid), overcast_fraction=overcast_fraction,
+                                 progress=step)
     typer.echo(json.dumps({"written": len(paths), "out": str(out)}))
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from f2l.io.progress import Progress, ProgressCallback
 from f2l.lighting.grid import LatLongGrid
 
 
@@ -51,7 +52,7 @@ def write_synthetic_shards(
     grid: LatLongGrid = LatLongGrid(),
     *,
     noise_sigma: float = 0.002,
-    progress: bool = True,
+    progress: ProgressCallback | None = None,
     records_per_shard: int = 64,
     capture_meta: bool = False,
     **render_options,
@@ -64,7 +65,8 @@ def write_synthetic_shards(
     linear image before it is sRGB-encoded and rounded to 8 bits, and the records' observed
     pixels are the decoded 8-bit codes. ``capture_meta`` gives each clear-sky record a
     ``meta["capture"]`` (time and place, ``f2l.io.capture.capture_for_elevation``) at which the
-    real sun stood at the synthetic sun's elevation, for the estimator's sun prior.
+    real sun stood at the synthetic sun's elevation, for the estimator's sun prior. ``progress``: a
+    callback told of each face written (:mod:`f2l.io.progress`).
     """
     from f2l.io.shards import FaceRecord, ShardWriter
     from f2l.io.side_files import write_side_photo, write_side_probe
@@ -76,10 +78,7 @@ def write_synthetic_shards(
     t0 = time.perf_counter()
     pixels = []
     faces = make_synthetic_set(n, grid, seed, noise_sigma=noise_sigma, **render_options)
-    if progress:
-        from tqdm import tqdm
-
-        faces = tqdm(faces, total=n, unit="face", desc="synth")
+    bar = Progress(progress, "synth", "face", n)
     kinds = {"clear": 0, "overcast": 0}
     with ShardWriter(out, records_per_shard=records_per_shard, overwrite=True) as writer:
         for i, face in enumerate(faces):
@@ -105,6 +104,7 @@ def write_synthetic_shards(
                 )
             )
             pixels.append(face.num_pixels)
+            bar.advance()
     elapsed = time.perf_counter() - t0
     return {
         "out": str(out),
