@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings eval-groups bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -74,6 +74,19 @@ eval-framings: $(STAMP)
 	$(BIN)/f2l estimate $(EVAL_FRAMINGS)/fitted -m sunsky --out $(EVAL_FRAMINGS)/est --json
 	$(BIN)/f2l eval framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
 		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est --out $(EVAL_FRAMINGS)
+
+# One light for many faces (f2l.estimate.joint; docs/experiments/joint_estimate.md): 40 path-traced group
+# photos (2-5 people under one light) on seed 0 to tune on and 40 on seed 1 to report on, fitted, then each
+# photo's first 1, 2, 3 and 5 faces estimated one at a time and jointly (sunsky) and scored against the truth;
+# tables in build/eval_groups/{tune,report}/groups.md. About 45 min on 2 cores; the renders are resumable.
+EVAL_GROUPS := build/eval_groups
+eval-groups: $(STAMP)
+	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_tune --n 40 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_report --n 40 --seed 1 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l fit-faces $(EVAL_GROUPS)/render_tune/photos --out $(EVAL_GROUPS)/fitted_tune --json
+	$(BIN)/f2l fit-faces $(EVAL_GROUPS)/render_report/photos --out $(EVAL_GROUPS)/fitted_report --json
+	$(BIN)/f2l eval groups $(EVAL_GROUPS)/render_tune --fitted $(EVAL_GROUPS)/fitted_tune --out $(EVAL_GROUPS)/tune
+	$(BIN)/f2l eval groups $(EVAL_GROUPS)/render_report --fitted $(EVAL_GROUPS)/fitted_report --out $(EVAL_GROUPS)/report
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)

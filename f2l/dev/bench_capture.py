@@ -40,7 +40,7 @@ import rawpy
 from f2l.capture.manifest import run_ingest
 from f2l.capture.probes import make_probes
 import f2l.capture.merge, f2l.capture.sphere, f2l.io.raw_meta, f2l.io.exr, f2l.io.tables
-import f2l.metrics.lighting, exifread, PIL.Image, tqdm, pyarrow.dataset, jsonschema, scipy.fft
+import f2l.metrics.lighting, exifread, PIL.Image, pyarrow.dataset, jsonschema, scipy.fft
 try:  # pyarrow imports pandas lazily where it is installed (not an f2l dependency): import it here,
     import pandas  # noqa: F401  so that its import time is not counted as work
 except ImportError:
