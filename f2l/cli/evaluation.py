@@ -29,6 +29,7 @@ def render_faces_cmd(
     maps: str = typer.Option("eval", help="Which real maps: eval (the seven of `make eval-real`) or held-out (city, sunrise, sunset: no default was chosen on them)."),
     framing: str = typer.Option("portrait", help="portrait (one head, 35-55% of a square frame), half (one person, head 12-25% of a 3:2 frame's long side), full (4-10%) or group (2-5 people, 5-14% each, one light); wider framings use --image-px as the long side (1280 suggested)."),
     shade_one: bool = typer.Option(False, "--shade-one", help="--framing group: under a clear sky a dark board puts one person's face in its shadow (meta: shaded_person)."),
+    session_size: int = typer.Option(1, "--session-size", help="--framing portrait: sessions of K photos (cases jK..jK+K-1) under the first one's light, each with its own person and a camera turned within ±90° (meta: session, camera_yaw_deg); 1: off."),
     json_out: JsonOut = False,
 ) -> None:
     """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups."""
@@ -53,9 +54,11 @@ def render_faces_cmd(
         raise typer.BadParameter(f"must be one of {', '.join(FRAMINGS)}", param_hint="--framing")
     if shade_one and framing != "group":
         raise typer.BadParameter("only with --framing group", param_hint="--shade-one")
+    if session_size < 1 or (session_size > 1 and framing != "portrait"):
+        raise typer.BadParameter("at least 1, and above 1 only with --framing portrait", param_hint="--session-size")
     with progress_bars(not json_out) as progress:
         if framing == "portrait":
-            summary = render_faces(out, n, seed, options, start=start, progress=progress)
+            summary = render_faces(out, n, seed, options, start=start, progress=progress, session_size=session_size)
         else:
             summary = render_framed(out, framing, n, seed, options, start=start, progress=progress)
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
@@ -232,6 +235,31 @@ def eval_groups_cmd(
                       progress=None if json_out else (lambda r: typer.echo(
                           f"{r['case']} n={r['n']}: Sun-ang {r['single'][0]:.1f} -> {r['joint'][0]:.1f}", err=True)))
     text = write_group_report(rows, out) if out is not None else group_table(rows)
+    typer.echo(json.dumps(rows) if json_out else text)
+
+
+def eval_sessions_cmd(
+    render_dir: Path = typer.Argument(..., help="An `f2l eval render-faces --session-size K` folder."),
+    fitted: Path = typer.Option(..., "--fitted", help="`f2l fit-faces` of its photos."),
+    model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write sessions.md and sessions.json here."),
+    tag: Optional[Path] = typer.Option(None, "--tag", help="Also write the fitted records here with meta session and camera_yaw_deg (for `f2l estimate --joint session`)."),
+    json_out: JsonOut = False,
+) -> None:
+    """Sessions (several photos, one light, known camera headings): each face estimated alone against its photo's true probe, and the session jointly in the first photo's frame against that photo's (§5.1 metrics), with the time of each."""
+    from f2l.evaluation.sessions import session_rows, session_table, tag_records, write_session_report
+
+    if not (Path(render_dir) / "meta").is_dir():
+        fail(f"not a render-faces folder (no meta/): {render_dir}")
+    if tag is not None:
+        typer.echo(f"tagged {tag_records(render_dir, fitted, tag)} records in {tag}", err=True)
+    rows = session_rows(render_dir, fitted, model,
+                        progress=None if json_out else (lambda r: typer.echo(
+                            f"{r['session']} ({r['faces']} faces): Sun-ang {r['single'][0]:.1f} -> {r['joint'][0]:.1f}",
+                            err=True)))
+    if not rows:
+        fail(f"no session with two fitted photos in {render_dir} (render with --session-size)")
+    text = write_session_report(rows, out) if out is not None else session_table(rows)
     typer.echo(json.dumps(rows) if json_out else text)
 
 

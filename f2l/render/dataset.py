@@ -24,6 +24,14 @@ Ablation switches (``RenderOptions``): ``specular=False`` (Lambertian skin), ``m
 (no interreflection), ``head="canonical"`` (MediaPipe's canonical face closed into a head),
 ``clipping=False`` (exposure puts the face's maximum at 0.9). ``shade_one`` is the framed groups'
 (:mod:`f2l.render.occluder`).
+
+Sessions (``session_size`` K > 1, :func:`draw_session_case`): cases ``jK .. jK + K − 1`` are the
+photos of session j. Each keeps its own person, pose, camera and skin draws, but all share the
+first case's lighting, seen by a camera turned ``camera_yaw_deg`` right (+ = toward +X from -Z;
+0 for the first photo, the others uniform in ±90° from a stream of their own): the lighting is
+the session's turned about +Y so that the photo sees at azimuth a what the first sees at a + yaw,
+and the truth probe is in the photo's own camera frame. Meta: ``session`` (the id K photos share)
+and ``camera_yaw_deg``. Without sessions every draw is as before, bit for bit.
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import numpy as np
 from f2l.io.progress import Progress, ProgressCallback
 from f2l.lighting.grid import LatLongGrid, angles_from_direction, direction_from_angles, rotate_y
 
-__all__ = ["RenderOptions", "case_id", "draw_case", "render_faces"]
+__all__ = ["RenderOptions", "case_id", "draw_case", "draw_session_case", "render_faces"]
 
 PROBE_GRID = LatLongGrid(128, 256)
 HEADS = ("anny", "canonical")
@@ -105,6 +113,43 @@ def draw_case(seed: int, index: int, options: RenderOptions = RenderOptions()) -
                 "skin_tone": round(mat_rng.uniform(0.0, 1.0), 4)}
     return {"face_id": case_id(seed, index), "seed": int(seed), "index": int(index),
             "lighting": lighting, "camera": camera, "material": material}
+
+
+SESSION_YAW_DEG = 90.0  # a session's other cameras turn uniformly within ± this of the first
+
+
+def session_id(seed: int, first: int) -> str:
+    """The id shared by the photos of the session whose first case is ``first``."""
+    return f"pbr-s{seed}-session{first:05d}"
+
+
+def session_yaws(seed: int, first: int, size: int) -> list[float]:
+    """The cameras' headings (degrees, + = right) of the session starting at case ``first``: 0 for
+    the first photo, the others uniform in ±SESSION_YAW_DEG from the session's own stream."""
+    rng = _stream(seed, first, 6)
+    return [0.0] + [round(float(rng.uniform(-SESSION_YAW_DEG, SESSION_YAW_DEG)), 4) for _ in range(size - 1)]
+
+
+def turn_lighting(lighting: dict, yaw_deg: float) -> dict:
+    """A case's lighting as a camera turned ``yaw_deg`` right sees it: a light at azimuth a moves
+    to a − yaw (the sun's azimuth; a map's ``rotation_deg``, :func:`rotate_y` moving by −angle)."""
+    if lighting["source"] == "sunsky":
+        azimuth = (lighting["sun_azimuth_deg"] - yaw_deg + 180.0) % 360.0 - 180.0
+        return {**lighting, "sun_azimuth_deg": round(azimuth, 4)}
+    return {**lighting, "rotation_deg": round((lighting["rotation_deg"] + yaw_deg) % 360.0, 4)}
+
+
+def draw_session_case(seed: int, index: int, options: RenderOptions = RenderOptions(), size: int = 1) -> dict:
+    """:func:`draw_case`, photo ``index % size`` of a session of ``size`` (module docstring): the
+    session's first case's lighting turned by this camera's heading; ``size`` 1 is draw_case."""
+    spec = draw_case(seed, index, options)
+    if size <= 1:
+        return spec
+    first = index - index % size
+    yaw = session_yaws(seed, first, size)[index - first]
+    reference = draw_case(seed, first, options)["lighting"]
+    return {**spec, "lighting": turn_lighting(reference, yaw), "session": session_id(seed, first),
+            "camera_yaw_deg": yaw, "session_lighting": reference}
 
 
 def _rotation(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
@@ -267,15 +312,17 @@ def _write_case(out: Path, spec: dict, options: RenderOptions, rendered: dict) -
 
 
 def render_faces(out: Path, n: int, seed: int = 0, options: RenderOptions = RenderOptions(), *,
-                 start: int = 0, progress: ProgressCallback | None = None) -> dict:
+                 start: int = 0, progress: ProgressCallback | None = None, session_size: int = 1) -> dict:
     """Render cases ``start .. start + n − 1`` into ``out`` (module docstring); resumable.
 
     A case that fails is recorded with its reason in the summary and ``render_status.json``; the
     others go on. ``progress``: a callback told of each case (:mod:`f2l.io.progress`).
+    ``session_size`` K > 1: sessions of K photos under one light (:func:`draw_session_case`).
     """
-    return render_set(out, range(start, start + n), lambda index: draw_case(seed, index, options),
+    summary = {"seed": seed, **({"session_size": int(session_size)} if session_size > 1 else {})}
+    return render_set(out, range(start, start + n), lambda index: draw_session_case(seed, index, options, session_size),
                       lambda spec: render_case(spec, options), options,
-                      summary={"seed": seed}, status_file="render_status.json", desc="render-faces", unit="face",
+                      summary=summary, status_file="render_status.json", desc="render-faces", unit="face",
                       progress=progress)
 
 
