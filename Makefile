@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings eval-groups bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings eval-groups eval-sessions bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -87,6 +87,17 @@ eval-groups: $(STAMP)
 	$(BIN)/f2l fit-faces $(EVAL_GROUPS)/render_report/photos --out $(EVAL_GROUPS)/fitted_report --json
 	$(BIN)/f2l eval groups $(EVAL_GROUPS)/render_tune --fitted $(EVAL_GROUPS)/fitted_tune --out $(EVAL_GROUPS)/tune
 	$(BIN)/f2l eval groups $(EVAL_GROUPS)/render_report --fitted $(EVAL_GROUPS)/fitted_report --out $(EVAL_GROUPS)/report
+
+# Sessions (issue 42): 12 sessions of 3 path-traced portraits, different people under one light, each
+# camera turned within ±90° (f2l eval render-faces --session-size 3); each face estimated alone and the
+# session jointly in the first photo's frame (sunsky). Table in build/eval_sessions/eval/sessions.md;
+# build/eval_sessions/tagged holds the records with meta session and camera_yaw_deg (for
+# `f2l estimate --joint session`). About 7 min on 2 cores; the renders are resumable.
+EVAL_SESSIONS := build/eval_sessions
+eval-sessions: $(STAMP)
+	$(BIN)/f2l eval render-faces --out $(EVAL_SESSIONS)/render --n 36 --seed 0 --session-size 3 --image-px 320 --spp 32 --json
+	$(BIN)/f2l fit-faces $(EVAL_SESSIONS)/render/photos --out $(EVAL_SESSIONS)/fitted --json
+	$(BIN)/f2l eval sessions $(EVAL_SESSIONS)/render --fitted $(EVAL_SESSIONS)/fitted --out $(EVAL_SESSIONS)/eval --tag $(EVAL_SESSIONS)/tagged
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)
