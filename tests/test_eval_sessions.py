@@ -83,3 +83,49 @@ def test_tiny_session_render_writes_each_photos_truth_in_its_own_frame(tmp_path)
     back = np.clip(roll_probe(probes[1], PROBE_GRID, metas[1]["camera_yaw_deg"]), None, sky.max())
     assert np.abs(back - sky).mean() < 0.02 * sky.mean()
     assert np.abs(np.clip(probes[1], None, sky.max()) - sky).mean() > 0.05 * sky.mean()
+
+
+def test_eval_sessions_cli_scores_singles_and_the_turned_session_and_tags_the_records(tmp_path):
+    """A render-faces-like session of three photos (the astronaut's fitted face under a clear sky as
+    cameras turned 0°, 45° and −30° see it): one row, finite metrics, records tagged for --joint session."""
+    import dataclasses
+
+    skdata = pytest.importorskip("skimage.data")
+    from PIL import Image
+    from typer.testing import CliRunner
+
+    from f2l.cli import app
+    from f2l.io.exr import write_exr
+    from f2l.io.shards import ShardWriter, iter_records
+    from f2l.synth.skies import clear_sky
+
+    render, grid = tmp_path / "render", LatLongGrid(32, 64)
+    for sub in ("photos", "meta", "probes"):
+        (render / sub).mkdir(parents=True)
+    Image.fromarray(skdata.astronaut()).save(render / "photos" / "pbr-s0-00000.jpg", quality=95)
+    runner = CliRunner()
+    res = runner.invoke(app, ["fit-faces", str(render / "photos"), "--out", str(tmp_path / "fit1"), "--grid", "32x64",
+                              "--json"])
+    assert res.exit_code == 0, res.output
+    (record,) = list(iter_records(tmp_path / "fit1"))
+    sky = clear_sky(grid, np.radians(40.0), np.radians(30.0)).astype(np.float32)
+    with ShardWriter(tmp_path / "fitted") as writer:
+        for i, yaw in enumerate((0.0, 45.0, -30.0)):
+            fid = f"pbr-s0-{i:05d}"
+            writer.write(dataclasses.replace(record, face_id=f"{fid}-f0",
+                                             source_path=str(render / "photos" / f"{fid}.jpg"), meta={}))
+            write_exr(render / "probes" / f"{fid}.exr", roll_probe(sky, grid, -yaw))
+            sun = direction_from_angles(np.radians(40.0), np.radians(30.0 - yaw))
+            (render / "meta" / f"{fid}.json").write_text(json.dumps({
+                "face_id": fid, "index": i, "session": "pbr-s0-session00000", "camera_yaw_deg": yaw,
+                "lighting": {"source": "sunsky"}, "sky": {"kind": "clear", "sun_direction": sun.tolist()}}))
+    res = runner.invoke(app, ["eval", "sessions", str(render), "--fitted", str(tmp_path / "fitted"), "--out",
+                              str(tmp_path / "report"), "--tag", str(tmp_path / "tagged")])
+    assert res.exit_code == 0, res.output
+    (row,) = json.loads((tmp_path / "report" / "sessions.json").read_text())
+    assert row["faces"] == 3 and row["yaws_deg"] == [0.0, 45.0, -30.0] and len(row["singles"]) == 3
+    assert all(np.isfinite(row["single"])) and all(np.isfinite(row["joint"])) and row["joint_s"] > 0
+    assert "| 1 (1) | 3 |" in (tmp_path / "report" / "sessions.md").read_text()
+    tagged = list(iter_records(tmp_path / "tagged"))
+    assert [(r.meta["session"], r.meta["camera_yaw_deg"]) for r in tagged] == \
+        [("pbr-s0-session00000", y) for y in (0.0, 45.0, -30.0)]
