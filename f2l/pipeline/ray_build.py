@@ -96,7 +96,10 @@ def prewarm(spec, root: Path, work: Path, sessions: list, landmarker_path=None, 
     chart alone (:func:`f2l.pipeline.run._session_probe`). ``progress``: a callback told of each
     face photo fitted (:mod:`f2l.io.progress`)."""
     with ray_session(address, workers) as ray:
-        from ray.util import ActorPool  # a part of ray, which ray_session has imported
+        try:
+            from ray.util import ActorPool  # a part of ray, which ray_session has imported
+        except ImportError as exc:  # a ray without its util package
+            raise ExecutorUnavailable(f"ray is installed without ray.util: {exc}") from exc
 
         return _run(ray, ActorPool, spec, str(root), str(work), token, sessions, landmarker_path,
                     max(1, int(workers)), progress)
