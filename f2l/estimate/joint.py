@@ -51,8 +51,8 @@ import torch
 from f2l.estimate import sun_search
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import _sun_share, estimate
-from f2l.estimate.joint_common import (DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult, JointUnsupported,  # noqa: F401
-                                       face_noise, face_weights)
+from f2l.estimate.joint_common import (DARK_RATIO, DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult,  # noqa: F401
+                                       JointUnsupported, darkness, face_noise, face_weights)
 from f2l.estimate.latent_joint import estimate_joint_latent
 from f2l.estimate.lbfgs import minimise, run_lbfgs
 from f2l.estimate.observation import EstimationError, FaceObservation
@@ -65,7 +65,6 @@ from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
 LINEAR_MIN_ITERS = 50
-DARK_RATIO = 0.3  # a face whose albedo x exposure is below this x the others' median is left out
 EXTRA_ITERS_PER_GAIN = 12  # and for each exposure gain (photos after the first): they start at 1
 
 
@@ -198,7 +197,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         seen_agreement.update(agreement)
         if disagree_ratio is None or fit is None:
             break
-        shade = _darkness(fit, active, groups)
+        shade = darkness({i: fit.albedo[j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active})
         worst = max(active, key=lambda i: agreement.get(i, 0.0))
         if agreement.get(worst, 0.0) > disagree_ratio:
             if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
@@ -229,19 +228,6 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     result.runtime_s = time.perf_counter() - t_start
     result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
     return JointResult(result, shares)
-
-
-def _darkness(fit: _Fit, active: list[int], groups: np.ndarray) -> dict[int, float]:
-    """Each face's mean albedo under the joint light over the median of the other faces' of its
-    photo (1 where it is alone in its photo): a face in another's shadow or under a hat takes the
-    light the group sees as a far darker skin than its neighbours'. Faces of other photos do not
-    count: their exposure and albedo cannot be told apart."""
-    level = {i: float(np.mean(fit.albedo[j])) for j, i in enumerate(active)}
-    out = {}
-    for i in active:
-        others = [level[o] for o in active if o != i and groups[o] == groups[i]]
-        out[i] = level[i] / max(float(np.median(others)), 1e-12) if others else 1.0
-    return out
 
 
 def _renumber(groups) -> np.ndarray:

@@ -14,6 +14,7 @@ from f2l.estimate.observation import EstimationError, FaceObservation, usable_pi
 
 SIGMA_MODEL = 0.05  # the relative misfit of the forward model itself, added to each face's noise
 DISAGREE_RATIO = 2.0  # agreement above this: the face does not share the group's light
+DARK_RATIO = 0.3  # a face whose albedo is below this x its photo-mates' median is left out (in shade)
 
 
 class JointUnsupported(EstimationError):
@@ -76,3 +77,16 @@ def face_weights(observations: list[FaceObservation], cfg: EstimatorConfig, nois
         n = np.minimum(n, cap)
     q = n / (np.asarray(noise, np.float64) ** 2 + SIGMA_MODEL**2)
     return len(q) * q / q.sum()
+
+
+def darkness(albedo: dict[int, np.ndarray], group: dict[int, int]) -> dict[int, float]:
+    """Each face's mean albedo under the joint light over the median of the other faces' of its
+    photo (``group``: face -> exposure group; 1 where it is alone in its photo). Under the group's
+    sun, a face in another's shadow or under a hat reads as a far darker skin than its neighbours'.
+    Faces of other photos do not count: their exposure and albedo cannot be told apart."""
+    level = {i: float(np.mean(a)) for i, a in albedo.items()}
+    out = {}
+    for i in level:
+        others = [level[o] for o in level if o != i and group[o] == group[i]]
+        out[i] = level[i] / max(float(np.median(others)), 1e-12) if others else 1.0
+    return out

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import estimate
-from f2l.estimate.joint_common import DISAGREE_RATIO, FaceShare, JointResult, face_noise, face_weights
+from f2l.estimate.joint_common import DARK_RATIO, DISAGREE_RATIO, FaceShare, JointResult, darkness, face_noise, face_weights
 from f2l.estimate.latent import (SEARCH_REFINE, LatentSkyProblem, _probe_with_ground, fit_starts, latent_params,
                                  pick_starts)
 from f2l.estimate.observation import EstimationError, FaceObservation
@@ -85,7 +85,7 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
     lights = _own_lights(problems, own, g0) if own else {}
     search_s = time.perf_counter() - t_search
     agreement: dict[int, float] = {}
-    if disagree_ratio is not None and len(active) > 1:
+    if disagree_ratio is not None and len(active) > 2:  # a pair has no majority
         support = _consensus(lights, own, active, disagree_ratio)
         agreement.update(support)
         for i in active:
@@ -103,10 +103,25 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
         sky = problems[active[0]].shape_sky(torch.as_tensor(fit["code"][None], dtype=torch.float32),
                                             torch.tensor([fit["azimuth"]], dtype=torch.float32)).detach()
         agreement.update({i: _ratio(problems[i], sky, own[i], g0) for i in problems})
-        worst = max(active, key=lambda i: agreement[i])
-        if disagree_ratio is None or agreement[worst] <= disagree_ratio:
+        if disagree_ratio is None:
             break
-        _leave_out(shares[worst], agreement[worst], disagree_ratio, "")
+        shade = darkness({i: fit["albedo"][j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active})
+        worst = max(active, key=lambda i: agreement[i])
+        if agreement[worst] > disagree_ratio:
+            if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
+                worst = min(active, key=lambda i: shade[i])
+                shares[worst].used = False
+                shares[worst].reason = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own "
+                                        f"best, limit {disagree_ratio:.2f}): each keeps its own estimate")
+            else:
+                _leave_out(shares[worst], agreement[worst], disagree_ratio, "")
+        else:
+            worst = min(active, key=lambda i: shade[i])
+            if shade[worst] >= DARK_RATIO:
+                break
+            shares[worst].used = False
+            shares[worst].reason = (f"too dark for the group's light: its albedo is {shade[worst]:.2f}x its "
+                                    f"photo's other faces' median (limit {DARK_RATIO:.2f}), as a face in shade is; left out")
         active = [i for i in active if i != worst]
     for i, s in enumerate(shares):
         s.agreement = agreement.get(i)
