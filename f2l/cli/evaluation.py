@@ -1,6 +1,7 @@
 """CLI layer of the independent evaluation renders (registered by :mod:`f2l.cli.app`):
 ``render-faces``, ``render-skies``, ``twin-geometry``, ``eval-real``, ``eval-real-geometry``,
-``eval-real-search``, ``eval-real-ablations``."""
+``eval-real-search``, ``eval-real-ablations``, ``framings``, and the joint estimate's ``groups``,
+``shade`` and ``sessions``."""
 
 from __future__ import annotations
 
