@@ -211,7 +211,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
             worst = min(active, key=lambda i: shade[i])
             if shade[worst] >= DARK_RATIO:
                 break
-            why = (f"too dark for the group's light: its albedo x exposure is {shade[worst]:.2f}x the other faces' "
+            why = (f"too dark for the group's light: its albedo is {shade[worst]:.2f}x its photo's other faces' "
                    f"median (limit {DARK_RATIO:.2f}), as a face in shade is; left out")
         shares[worst].used, shares[worst].reason = False, why
         active = [i for i in active if i != worst]
