@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 
 from f2l.render.dataset import RenderOptions
+from tests.render_helpers import astronaut_pair_render
 
 
 def test_the_board_has_its_own_stream_and_leaves_the_case_unchanged():
@@ -96,37 +97,13 @@ def test_a_shaded_render_darkens_one_face_and_a_case_without_a_board_is_the_plai
 def test_eval_shade_scores_the_three_joint_estimates(tmp_path):
     """A render-faces-like folder: the astronaut twice (mirrored), the second face marked shaded;
     fit-faces, then ``f2l eval shade``: each variant scored, the flag read, the tables written."""
-    skdata = pytest.importorskip("skimage.data")
     from typer.testing import CliRunner
 
     from f2l.cli import app
-    from f2l.dev.bench_detect import ASTRONAUT_FACE
-    from f2l.io.exr import write_exr
-    from f2l.lighting.grid import LatLongGrid, direction_from_angles
-    from f2l.synth.skies import clear_sky
 
-    render = tmp_path / "render"
-    for sub in ("photos", "meta", "probes"):
-        (render / sub).mkdir(parents=True)
-    a = skdata.astronaut()
-    Image.fromarray(np.ascontiguousarray(np.concatenate([a, a[:, ::-1]], axis=1))).save(
-        render / "photos" / "pbr-group-s0-00001.jpg", quality=95)
-    grid = LatLongGrid(32, 64)
-    sun = direction_from_angles(np.radians(40.0), np.radians(30.0))
-    write_exr(render / "probes" / "pbr-group-s0-00001.exr",
-              clear_sky(grid, np.radians(40.0), np.radians(30.0)).astype(np.float32))
-    boxes = [ASTRONAUT_FACE.tolist(), [1024 - ASTRONAUT_FACE[2], ASTRONAUT_FACE[1], 1024 - ASTRONAUT_FACE[0],
-                                       ASTRONAUT_FACE[3]]]
-    faces = [{"box": [float(v) for v in b], "width_px": float(b[2] - b[0]), "in_frame": True,
-              "pose": {"yaw_deg": 0.0}} for b in boxes]
-    (render / "meta" / "pbr-group-s0-00001.json").write_text(json.dumps({
-        "face_id": "pbr-group-s0-00001", "framing": "group", "faces": faces, "shaded_person": 1,
-        "sky": {"kind": "clear", "sun_direction": [float(v) for v in sun]}}))
+    render, fitted = astronaut_pair_render(tmp_path, shaded_person=1)
     runner = CliRunner()
-    res = runner.invoke(app, ["fit-faces", str(render / "photos"), "--out", str(tmp_path / "fitted"), "--grid", "32x64",
-                              "--json"])
-    assert res.exit_code == 0, res.output
-    res = runner.invoke(app, ["eval", "shade", str(render), "--fitted", str(tmp_path / "fitted"),
+    res = runner.invoke(app, ["eval", "shade", str(render), "--fitted", str(fitted),
                               "--out", str(tmp_path / "report")])
     assert res.exit_code == 0, res.output
     (row,) = json.loads((tmp_path / "report" / "shade.json").read_text())

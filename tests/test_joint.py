@@ -206,32 +206,31 @@ def test_faces_of_photos_taken_in_other_directions_share_the_sky_once_turned(ski
     assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
 
 
+def _estimate_session(records, out):
+    """``f2l estimate --joint session -m sh9`` on ``records`` written as one shard; the rows."""
+    from f2l.io.shards import ShardWriter
+
+    with ShardWriter(out / "shard") as writer:
+        for r in records:
+            writer.write(r)
+    res = subprocess.run(f2l_cmd("estimate", str(out / "shard"), "-m", "sh9", "--out", str(out / "est"), "--joint",
+                                 "session", "--json"), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    return pq.read_table(out / "est" / "estimates.parquet").to_pylist()
+
+
 def test_cli_session_merges_only_photos_whose_heading_is_known(small_shards, tmp_path):
-    from f2l.io.shards import ShardWriter, iter_records
+    from f2l.io.shards import iter_records
 
     records = [r for r in iter_records(small_shards)][:3]
     for r in records:
         r.meta["session"] = "garden"
-    shard = tmp_path / "unknown"
-    with ShardWriter(shard) as writer:
-        for r in records:
-            writer.write(r)
-    res = subprocess.run(f2l_cmd("estimate", str(shard), "-m", "sh9", "--out", str(tmp_path / "est1"), "--joint",
-                                 "session", "--json"), capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
-    rows = pq.read_table(tmp_path / "est1" / "estimates.parquet").to_pylist()
+    rows = _estimate_session(records, tmp_path / "unknown")
     assert all("not merged" in r["message"] and "camera_yaw_deg" in r["message"] for r in rows)
     assert {r["group_size"] for r in rows} == {1}
     for r, yaw in zip(records, (0.0, 90.0, -45.0)):
         r.meta["camera_yaw_deg"] = yaw
-    shard = tmp_path / "known"
-    with ShardWriter(shard) as writer:
-        for r in records:
-            writer.write(r)
-    res = subprocess.run(f2l_cmd("estimate", str(shard), "-m", "sh9", "--out", str(tmp_path / "est2"), "--joint",
-                                 "session", "--json"), capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
-    rows = pq.read_table(tmp_path / "est2" / "estimates.parquet").to_pylist()
+    rows = _estimate_session(records, tmp_path / "known")
     assert {r["group_size"] for r in rows} == {3} and len({r["group_id"] for r in rows}) == 1
     assert all(r["exposure_gain"] is not None for r in rows if r["group_used"])
 

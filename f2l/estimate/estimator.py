@@ -152,14 +152,8 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
                 sun_core = 0.0
     variables, its = run_lbfgs(prob, unpack, variables, cfg, budget)
     iterations += its
-    with torch.no_grad():
-        params, rho, rho_g = unpack(*variables)
-        total, data = prob.objective(params, rho, rho_g)
+    params, rho, rho_g, totals, best = fitted_starts(prob, unpack, variables, "optimisation")
     fit_s = time.perf_counter() - t_fit
-    totals = total.numpy()
-    if not np.isfinite(totals).any():
-        raise EstimationError("optimisation diverged: objective is not finite for any start")
-    best = int(np.nanargmin(totals))
     converged = its < budget
 
     profile_s, sun_direction, weights = 0.0, None, None
@@ -205,6 +199,18 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         num_pixels_used=int(prob.idx.size),
         specular_ks=float(ks[best]) if ks is not None else None,
     )
+
+
+def fitted_starts(prob, unpack, variables, what: str):
+    """The fitted starts' parameters (as ``unpack`` gives them), their objectives (numpy) and the
+    lowest one's index; raises EstimationError naming ``what`` when no objective is finite."""
+    with torch.no_grad():
+        params, rho, side = unpack(*variables)
+        total, _ = prob.objective(params, rho, side)
+    totals = total.numpy()
+    if not np.isfinite(totals).any():
+        raise EstimationError(f"{what} diverged: objective is not finite for any start")
+    return params, rho, side, totals, int(np.nanargmin(totals))
 
 
 def _estimate_linear(obs, model, cfg: EstimatorConfig, prob: FaceProblem, t_start: float) -> EstimateResult:

@@ -50,7 +50,7 @@ import torch
 
 from f2l.estimate import sun_search
 from f2l.estimate.config import EstimateResult, EstimatorConfig
-from f2l.estimate.estimator import _sun_share, estimate
+from f2l.estimate.estimator import _sun_share, estimate, fitted_starts
 from f2l.estimate.joint_common import (DARK_RATIO, DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult,  # noqa: F401
                                        JointUnsupported, darkness, face_noise, face_weights)
 from f2l.estimate.latent_joint import estimate_joint_latent
@@ -342,14 +342,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
                                   frozen=() if cfg.fixed_albedo is None else (2,))
     iterations += its
     converged = its < budget
-    with torch.no_grad():
-        params, rho, side = unpack(*variables)
-        total, _ = jp.objective(params, rho, side)
+    params, rho, side, totals, best = fitted_starts(jp, unpack, variables, "joint optimisation")
     fit_s = time.perf_counter() - t_fit
-    totals = total.numpy()
-    if not np.isfinite(totals).any():
-        raise EstimationError("joint optimisation diverged: objective is not finite for any start")
-    best = int(np.nanargmin(totals))
     profile_s, sun_direction, mix = 0.0, None, None
     if jp.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
         t_profile = time.perf_counter()

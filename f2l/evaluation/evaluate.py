@@ -104,6 +104,19 @@ def load_cases(render_dir: Path) -> dict[str, dict]:
     return cases
 
 
+def records_by_case(fitted, cases) -> dict[str, list]:
+    """The fitted face records of each render case in ``cases`` (its photo's file stem), every
+    photo's faces sorted by face id; unreadable records are skipped."""
+    records: dict[str, list] = {}
+    for rec in iter_records(fitted):
+        if not hasattr(rec, "source_path") or not hasattr(rec, "meta"):
+            continue
+        stem = case_of_source(rec.source_path)
+        if stem in cases:
+            records.setdefault(stem, []).append(rec)
+    return {cid: sorted(recs, key=lambda r: r.face_id) for cid, recs in records.items()}
+
+
 def split_of(meta: dict) -> str:
     return "report" if meta["index"] % 2 == SPLITS["report"] else "tune"
 

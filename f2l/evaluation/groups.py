@@ -22,8 +22,7 @@ from f2l.estimate.config import EstimatorConfig
 from f2l.estimate.estimator import estimate
 from f2l.estimate.joint import estimate_joint
 from f2l.estimate.observation import EstimationError, FaceObservation
-from f2l.evaluation.evaluate import _truth_on, baseline_probes, load_cases
-from f2l.io.shards import iter_records
+from f2l.evaluation.evaluate import _truth_on, baseline_probes, load_cases, records_by_case
 from f2l.lighting.grid import LatLongGrid
 from f2l.metrics import evaluate_pair
 from f2l.models.registry import load_model
@@ -40,14 +39,10 @@ def group_rows(render_dirs, fitted, model_name: str = "sunsky", sizes=SIZES, cfg
     for d in map(Path, render_dirs):
         for cid, meta in load_cases(d).items():
             cases[cid], where[cid] = meta, d
-    records: dict[str, list] = {}
-    for rec in iter_records(fitted):
-        stem = Path(rec.source_path).stem
-        if stem in cases:
-            records.setdefault(stem, []).append(rec)
+    records = records_by_case(fitted, cases)
     model, cache, rows = None, {}, []
     for cid in sorted(records):
-        recs = sorted(records[cid], key=lambda r: r.face_id)
+        recs = records[cid]
         meta = cases[cid]
         grid = LatLongGrid(recs[0].grid_height, recs[0].grid_width)
         model = model if model is not None and model.grid.shape == grid.shape else load_model(model_name, grid)

@@ -30,7 +30,7 @@ from f2l.estimate.frames import turn_observation
 from f2l.estimate.group_record import YAW_KEY
 from f2l.estimate.joint import estimate_joint
 from f2l.estimate.observation import EstimationError, FaceObservation
-from f2l.evaluation.evaluate import _truth_on, load_cases
+from f2l.evaluation.evaluate import _truth_on, load_cases, records_by_case
 from f2l.io.atomic import write_text_atomic
 from f2l.io.shards import BadRecord, ShardWriter, iter_records
 from f2l.lighting.grid import LatLongGrid
@@ -44,13 +44,7 @@ def session_photos(render_dir, fitted) -> dict[str, list[tuple[dict, object]]]:
     """Session id -> [(render meta, fitted record)] of its photos with a fitted face, in case order
     (a photo's first face by face id)."""
     cases = {cid: m for cid, m in load_cases(Path(render_dir)).items() if m.get("session")}
-    first: dict[str, object] = {}
-    for rec in iter_records(fitted):
-        if isinstance(rec, BadRecord):
-            continue
-        stem = Path(rec.source_path).stem
-        if stem in cases and (stem not in first or rec.face_id < first[stem].face_id):
-            first[stem] = rec
+    first = {cid: recs[0] for cid, recs in records_by_case(fitted, cases).items()}
     sessions: dict[str, list] = {}
     for cid in sorted(cases, key=lambda c: cases[c]["index"]):
         if cid in first:

@@ -28,10 +28,9 @@ import numpy as np
 from f2l.estimate.config import EstimatorConfig
 from f2l.estimate.joint import DISAGREE_RATIO, estimate_joint
 from f2l.estimate.observation import EstimationError, FaceObservation
-from f2l.evaluation.evaluate import _truth_on, baseline_probes, load_cases
+from f2l.evaluation.evaluate import _truth_on, baseline_probes, load_cases, records_by_case
 from f2l.face.detector import iou
 from f2l.io.atomic import write_text_atomic
-from f2l.io.shards import iter_records
 from f2l.lighting.grid import LatLongGrid
 from f2l.metrics import evaluate_pair
 from f2l.models.registry import load_model
@@ -71,15 +70,11 @@ def shade_rows(render_dirs, fitted, model_name: str = "sunsky", cfg: EstimatorCo
     the photo has no such estimate)."""
     cfg = cfg or EstimatorConfig(sun_prior_from_capture=False)
     cases, where = _shaded_cases(render_dirs)
-    records: dict[str, list] = {}
-    for rec in iter_records(fitted):
-        stem = Path(rec.source_path).stem
-        if stem in cases:
-            records.setdefault(stem, []).append(rec)
+    records = records_by_case(fitted, cases)
     model, cache, rows = None, {}, []
     for cid in sorted(cases):
         meta = cases[cid]
-        recs = sorted(records.get(cid, []), key=lambda r: r.face_id)
+        recs = records.get(cid, [])
         persons = match_persons(meta["faces"], recs)
         shaded = meta["shaded_person"]
         row = {"case": cid, "people": len(meta["faces"]), "faces": len(recs), "shaded_person": shaded,
