@@ -216,8 +216,11 @@ def sky_visibility(bits: np.ndarray, grid: LatLongGrid) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------
 def fit_face(photo, landmarks, face_index: int, options: FitOptions,
-             detection_score: float = 1.0, presence: float = 1.0) -> FaceFit | Rejected:
-    """Fit one face of ``photo`` (:class:`f2l.io.photo.Photo`) from its (478, 3) landmarks."""
+             detection_score: float = 1.0, presence: float = 1.0, visibility=None) -> FaceFit | Rejected:
+    """Fit one face of ``photo`` (:class:`f2l.io.photo.Photo`) from its (478, 3) landmarks.
+
+    ``visibility``: optional ``(points, normals, head) -> packed bits`` for the traced pixels in
+    place of ray casting (a video's head reuses its cached transport: :mod:`f2l.video.head`)."""
     from f2l.face.quality import face_blur_index
     from f2l.face.regions import skin_regions
     from f2l.face.mesh import canonical_face_mesh
@@ -295,17 +298,19 @@ def fit_face(photo, landmarks, face_index: int, options: FitOptions,
     bits = np.zeros((len(mask), packed_width(options.grid)), np.uint8)
     bits[~traced] = np.packbits(front_mask(normals[~traced], options.grid), axis=1,
                                 bitorder="little")
-    occluder_v, occluder_f, offset = v, f, None
-    if options.body_proxy:  # the ray offset stays the face mesh's (1e-4 of its diagonal)
-        from f2l.face.body import with_body_proxy
+    if visibility is not None:
+        bits[traced] = visibility(points[traced], normals[traced], head)
+    else:
+        occluder_v, occluder_f, offset = v, f, None
+        if options.body_proxy:  # the ray offset stays the face mesh's (1e-4 of its diagonal)
+            from f2l.face.body import with_body_proxy
 
-        occluder_v, occluder_f = with_body_proxy(v, f, head.vertices, canon, head.rotation)
-        offset = 1e-4 * float(np.linalg.norm(v.max(0) - v.min(0)))
-    bits[traced] = compute_visibility(occluder_v, occluder_f, points[traced], normals[traced], options.grid,
-                                      offset=offset,
-                                      method=options.visibility_method,
-                                      threads=options.threads, pixel_rc=pixel_rc[traced],
-                                      lattice_levels=options.lattice_levels)
+            occluder_v, occluder_f = with_body_proxy(v, f, head.vertices, canon, head.rotation)
+            offset = 1e-4 * float(np.linalg.norm(v.max(0) - v.min(0)))
+        bits[traced] = compute_visibility(occluder_v, occluder_f, points[traced], normals[traced], options.grid,
+                                          offset=offset, method=options.visibility_method,
+                                          threads=options.threads, pixel_rc=pixel_rc[traced],
+                                          lattice_levels=options.lattice_levels)
     t2 = time.perf_counter()
     return FaceFit(
         face_index=face_index, landmarks=lm, head=head, view=view, pixel_rc=pixel_rc,
