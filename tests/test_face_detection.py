@@ -88,12 +88,14 @@ def astronaut():
 
 
 def _paste(canvas: np.ndarray, photo: np.ndarray, face_px: float, x: int, y: int, *, flip: bool = False,
-           gain: float = 1.0) -> np.ndarray:
-    """Paste the astronaut's head and shoulders, scaled so the face is ``face_px`` wide, with its top-left
-    corner at (x, y); returns the face's box in the canvas."""
-    x0, y0, x1, y1 = 100, 10, 350, 330  # head and shoulders around the face
+           gain: float = 1.0, face_box: np.ndarray = ASTRONAUT_FACE,
+           region: tuple[int, int, int, int] = (100, 10, 350, 330)) -> np.ndarray:
+    """Paste a person's head and shoulders (``region`` of ``photo``, around its face ``face_box``; by
+    default the astronaut's), scaled so the face is ``face_px`` wide, with its top-left corner at
+    (x, y); returns the face's box in the canvas."""
+    x0, y0, x1, y1 = region
     crop = photo[y0:y1, x0:x1]
-    face = ASTRONAUT_FACE - [x0, y0, x0, y0]
+    face = face_box - [x0, y0, x0, y0]
     if flip:
         crop = crop[:, ::-1]
         face = np.array([crop.shape[1] - face[2], face[1], crop.shape[1] - face[0], face[3]])
@@ -149,31 +151,37 @@ def test_a_group_photo_finds_every_face(landmarker, group_photo):
     assert len(matched) == len(truths) == len(set(matched)) == len(faces), [f.detection.box for f in faces]
 
 
-def test_a_group_photo_gives_a_record_or_a_reason_per_face(group_photo, tmp_path):
-    """`f2l fit-faces` on the group photo: every detected face is a record or a named refusal, and
-    one overlay of the whole photo shows them all."""
+def fit_faces_of(canvas: np.ndarray, truths, tmp_path, name: str):
+    """`f2l fit-faces` on one composite: (status row, refusals, records), after checking that every
+    true face is detected once and is a record or a named refusal, and that the overlay exists."""
+    import pyarrow.parquet as pq
     from typer.testing import CliRunner
 
     from f2l.cli import app
     from f2l.io.shards import iter_records
 
-    canvas, truths = group_photo
-    Image.fromarray(canvas).save(tmp_path / "group.jpg", quality=92)
-    res = CliRunner().invoke(app, ["fit-faces", str(tmp_path / "group.jpg"), "--out", str(tmp_path / "out"),
+    Image.fromarray(canvas).save(tmp_path / f"{name}.jpg", quality=92)
+    res = CliRunner().invoke(app, ["fit-faces", str(tmp_path / f"{name}.jpg"), "--out", str(tmp_path / "out"),
                                    "--grid", "8x16", "--json"])
     assert res.exit_code == 0, res.output
-    import pyarrow.parquet as pq
-
     row = pq.read_table(tmp_path / "out" / "status" / "fit_faces.parquet").to_pylist()[0]
     rejected = json.loads(row["rejected_json"])
     assert row["num_detected"] == len(truths)
     assert len(row["face_ids"]) + len(rejected) == len(truths)
-    assert len(row["face_ids"]) >= len(truths) - 1
-    assert all(r["reason"] and "group.jpg" in r["message"] for r in rejected)
+    assert all(r["reason"] and f"{name}.jpg" in r["message"] for r in rejected), rejected
     records = list(iter_records(tmp_path / "out"))
     assert sorted(r.face_id for r in records) == sorted(row["face_ids"])
     assert len({r.face_index for r in records}) == len(records)
     assert (tmp_path / "out" / row["overlay_path"]).is_file()
+    return row, rejected, records
+
+
+def test_a_group_photo_gives_a_record_or_a_reason_per_face(group_photo, tmp_path):
+    """`f2l fit-faces` on the group photo: every detected face is a record or a named refusal, and
+    one overlay of the whole photo shows them all."""
+    canvas, truths = group_photo
+    row, _, _ = fit_faces_of(canvas, truths, tmp_path, "group")
+    assert len(row["face_ids"]) >= len(truths) - 1
 
 
 @pytest.mark.parametrize("name", ["coffee", "chelsea", "rocket", "stereo_motorcycle", "hubble_deep_field"])
