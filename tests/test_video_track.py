@@ -94,6 +94,11 @@ def test_one_face_keeps_one_id_and_the_still_image_landmarks(tmp_path, sprites, 
     nose = np.array([fr.faces[0].landmarks[4, 0] for fr in tracker_frames])
     assert np.median(np.diff(nose)) == pytest.approx(6 + 0.0075 * 100, abs=1.0)
     assert all(abs(fr.faces[0].yaw_deg) < 15 for fr in tracker_frames)
+    # every other frame: the tracker sees only those, the face moves twice as far between them
+    halves = list(track_clip(clip, landmarker, every=2))
+    assert [fr.index for fr in halves] == list(range(0, 40, 2))
+    assert all(fr.faces[0].person == 0 and fr.faces[0].status == "ok" for fr in halves)
+    np.testing.assert_allclose(halves[-1].faces[0].landmarks, tracker_frames[38].faces[0].landmarks, atol=1.5)
 
 
 def test_two_people_keep_distinct_ids_while_they_move(tmp_path, sprites, landmarker):
@@ -148,7 +153,8 @@ def test_a_covered_face_is_covered_and_the_other_face_is_unaffected(tmp_path, sp
     base = [[(a, 40 + 2 * i, 30, 0.8), (g, 290, 60 + i, 0.45)] for i in range(30)]
     covered = [items + ([("cover", 20, 10, 230, 240)] if 10 <= i < 20 else []) for i, items in enumerate(base)]
     _, plain = rows_by_frame(write_video(tmp_path / "plain.mp4", compose(base)), landmarker)
-    _, rows = rows_by_frame(write_video(tmp_path / "covered.mp4", compose(covered)), landmarker, search_every=3)
+    covered_clip = write_video(tmp_path / "covered.mp4", compose(covered))
+    _, rows = rows_by_frame(covered_clip, landmarker, search_every=3)
     pa = min(rows[0].values(), key=lambda f: f.box[0]).person
     pg = 1 - pa
     assert all(set(r) == {0, 1} for r in rows)
@@ -162,6 +168,12 @@ def test_a_covered_face_is_covered_and_the_other_face_is_unaffected(tmp_path, sp
     assert rows[12][pa].status == "covered" and "last seen" in rows[12][pa].reason
     # it comes back where it was, as the same person
     assert rows[20][pa].status == "ok"
+    # hidden longer than max_gap_s (0.2 s = 5 frames): lost after that, and a new person after
+    _, short = rows_by_frame(covered_clip, landmarker, search_every=3, max_gap_s=0.2)
+    assert [short[i][pa].status for i in (12, 13, 15, 19)] == ["covered", "covered", "lost", "lost"]
+    assert "not seen for" in short[15][pa].reason
+    assert set(short[-1]) == {0, 1, 2} and short[-1][2].status == "ok" and short[-1][pa].status == "lost"
+    assert all(r[pg].status == "ok" for r in short)
 
 
 def test_head_pose_of_the_canonical_mesh_turned_and_nodded():
@@ -214,3 +226,15 @@ def test_a_missing_or_non_video_clip_gives_a_clear_error(tmp_path, landmarker):
     with pytest.raises(VideoError, match="not a readable video") as exc:
         next(track_clip(text, landmarker))
     assert str(text) in str(exc.value)
+
+
+def test_the_benchmark_runs_on_a_small_clip():
+    """``python -m f2l.video.bench_track`` at 480×270, 20 frames (the face moves 16 px/frame, a
+    third of its width): every stage timed, one person found on every frame and followed without
+    detection after the first, tracked landmarks on the still-image ones."""
+    from f2l.video.bench_track import run_bench
+
+    r = run_bench(frames=20, size=(480, 270), keyframe_every=30, check_every=5)
+    assert (r["ok_rows"], r["rows"], r["people"], r["keyframes"]) == (20, 20, 1, 1)
+    assert r["fps"] > 0 and all(r[k]["median"] > 0 for k in ("decode_ms", "follow_ms", "keyframe_ms"))
+    assert r["landmark_err_px"]["median"] < 1.5 and 40 < r["face_width_px"] < 80

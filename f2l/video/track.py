@@ -147,13 +147,14 @@ class FaceTracker:
     between regular detections; ``search_every``: frames between detections while a person is
     missing; ``min_presence``: the face presence a followed face must keep; ``max_gap_s``: how
     long a missing person may be re-identified where it was last seen; ``max_faces``: the most
-    people followed at once (0: no limit).
+    people followed at once (0: no limit); ``predict_motion``: move each ROI on by the face's
+    last step (off: MediaPipe's ROI from the last landmarks as it is).
     """
 
     def __init__(self, landmarker, *, min_face_px: float = 40.0, keyframe_every: int = 30,
                  search_every: int = 5, max_yaw_deg: float = 50.0, min_presence: float = 0.5,
                  max_outside_fraction: float = 0.02, max_gap_s: float = 2.0, reid_radius: float = 1.0,
-                 reid_scale: float = 2.0, max_faces: int = 0) -> None:
+                 reid_scale: float = 2.0, max_faces: int = 0, predict_motion: bool = True) -> None:
         from f2l.face.mesh import canonical_face_mesh
 
         if keyframe_every < 1 or search_every < 1:
@@ -169,6 +170,7 @@ class FaceTracker:
         self.reid_radius = float(reid_radius)
         self.reid_scale = float(reid_scale)
         self.max_faces = int(max_faces)
+        self.predict_motion = bool(predict_motion)
         self._canonical = np.asarray(canonical_face_mesh()[0], np.float64)
         self._tracks: list[_Track] = []
         self._next_person = 0
@@ -188,7 +190,7 @@ class FaceTracker:
         lost_now = False
         for track in self._tracks:
             if track.visible:
-                points, p = self._follow(image, track.roi, track.velocity)
+                points, p = self._follow(image, track.roi, track.velocity if self.predict_motion else np.zeros(2))
                 presence[track.person] = p
                 if p >= self.min_presence:
                     self._see(track, points, index, time_s, hw)
