@@ -168,11 +168,13 @@ def test_a_covered_face_is_covered_and_the_other_face_is_unaffected(tmp_path, sp
     assert rows[12][pa].status == "covered" and "last seen" in rows[12][pa].reason
     # it comes back where it was, as the same person
     assert rows[20][pa].status == "ok"
-    # hidden longer than max_gap_s (0.2 s = 5 frames): lost after that, and a new person after
-    _, short = rows_by_frame(covered_clip, landmarker, search_every=3, max_gap_s=0.2)
+    # hidden longer than max_gap_s (0.2 s = 5 frames): lost after that, and a new person when
+    # the next regular keyframe (every 5 frames here) finds the face again
+    _, short = rows_by_frame(covered_clip, landmarker, search_every=3, max_gap_s=0.2, keyframe_every=5)
     assert [short[i][pa].status for i in (12, 13, 15, 19)] == ["covered", "covered", "lost", "lost"]
     assert "not seen for" in short[15][pa].reason
     assert set(short[-1]) == {0, 1, 2} and short[-1][2].status == "ok" and short[-1][pa].status == "lost"
+    assert 20 <= [i for i, r in enumerate(short) if 2 in r][0] < 25  # the first keyframe after
     assert all(r[pg].status == "ok" for r in short)
 
 

@@ -9,8 +9,8 @@
    face is kept while the model's face presence stays ≥ ``min_presence``;
 2. **detects** (the tiled BlazeFace detector over the whole frame) on keyframes: the first
    frame, every ``keyframe_every`` frames, the frame a track is lost on, and every
-   ``search_every`` frames while a person is missing. A detection that overlaps a followed face
-   is that face; any other gets the still-image landmarks
+   ``search_every`` frames while a person is missing (up to ``max_gap_s``). A detection that
+   overlaps a followed face is that face; any other gets the still-image landmarks
    (:meth:`FaceLandmarker.landmarks`, which must pass the landmarker's stricter
    ``min_presence``) and is matched to a missing person that left from where it is (centre within
    ``reid_radius`` face widths of where it was last seen, width within ×``reid_scale``, gone no
@@ -175,7 +175,6 @@ class FaceTracker:
         self._tracks: list[_Track] = []
         self._next_person = 0
         self._last_keyframe: int | None = None
-        self._last_search: int | None = None
         self.keyframes = 0  # frames the detector ran on
         self.inferences = 0  # landmark model runs while following (keyframes not counted)
 
@@ -204,7 +203,7 @@ class FaceTracker:
                 if p >= self.landmarker.min_presence and not self._overlaps_visible(landmark_box(points)):
                     self._see(track, points, index, time_s, hw)
         self._merge_duplicates()
-        keyframe = self._is_keyframe(index, lost_now)
+        keyframe = self._is_keyframe(index, time_s, lost_now)
         if keyframe:
             self._detect(image, index, time_s, hw, presence)
         return [self._row(track, index, time_s, hw, presence.get(track.person, 0.0), keyframe)
@@ -238,14 +237,15 @@ class FaceTracker:
                 if a.visible and b.visible and iou(a.box, b.box[None])[0] > 0.5:
                     b.visible, b.roi = False, None
 
-    def _is_keyframe(self, index: int, lost_now: bool) -> bool:
+    def _is_keyframe(self, index: int, time_s: float, lost_now: bool) -> bool:
         if self._last_keyframe is None or lost_now or index - self._last_keyframe >= self.keyframe_every:
             return True
-        missing = any(not t.visible for t in self._tracks)
-        return missing and index - (self._last_search or self._last_keyframe) >= self.search_every
+        # searched for more often only while a missing person can still be re-identified
+        missing = any(not t.visible and time_s - t.last_seen_s <= self.max_gap_s for t in self._tracks)
+        return missing and index - self._last_keyframe >= self.search_every
 
     def _detect(self, image: np.ndarray, index: int, time_s: float, hw, presence: dict) -> None:
-        self._last_keyframe = self._last_search = index
+        self._last_keyframe = index
         self.keyframes += 1
         for det in self.landmarker.detect(image, min_face_px=self.min_face_px):
             if self._overlaps_visible(np.asarray(det.box, np.float64)):
