@@ -19,6 +19,7 @@ LAYERS = (
     ("estimate",),
     ("synth",),
     ("pipeline", "prior", "render", "testing"),
+    ("video",),
     ("evaluation",),
     ("report",),
     ("demo", "dev"),

@@ -231,10 +231,10 @@ def test_a_missing_or_non_video_clip_gives_a_clear_error(tmp_path, landmarker):
 
 
 def test_the_benchmark_runs_on_a_small_clip():
-    """``python -m f2l.video.bench_track`` at 480×270, 20 frames (the face moves 16 px/frame, a
+    """``python -m f2l.dev.bench_track`` at 480×270, 20 frames (the face moves 16 px/frame, a
     third of its width): every stage timed, one person found on every frame and followed without
     detection after the first, tracked landmarks on the still-image ones."""
-    from f2l.video.bench_track import run_bench
+    from f2l.dev.bench_track import run_bench
 
     r = run_bench(frames=20, size=(480, 270), keyframe_every=30, check_every=5)
     assert (r["ok_rows"], r["rows"], r["people"], r["keyframes"]) == (20, 20, 1, 1)

@@ -1,4 +1,4 @@
-"""Time decoding and face tracking on a 1280×720 clip: ``python -m f2l.video.bench_track``.
+"""Time decoding and face tracking on a 1280×720 clip: ``python -m f2l.dev.bench_track``.
 
 The clip is made here from real photographs: scikit-image's ``astronaut`` (a NASA portrait,
 public domain), cropped to head and shoulders, pasted onto ``coffee`` (no face) scaled to the
@@ -34,8 +34,12 @@ import numpy as np
 def make_clip(path: Path, frames: int = 120, size: tuple[int, int] = (1280, 720), fps: float = 25.0) -> Path:
     """The benchmark's clip (see the module docstring), written to ``path``."""
     import cv2
-    import skimage.data as skdata
 
+    try:
+        import skimage.data as skdata
+    except ImportError as exc:  # pragma: no cover - a test extra
+        raise RuntimeError("bench_track needs scikit-image's sample photos: pip install 'f2l[test]' "
+                           "(the README's setup installs it)") from exc
     w, h = size
     background = cv2.resize(skdata.coffee(), (w, h), interpolation=cv2.INTER_CUBIC)
     head = skdata.astronaut()[0:330, 100:350]
