@@ -83,6 +83,8 @@ class JointProblem:
         self.hybrid = self.first.hybrid
         self.spec = None
         self.last_data = None
+        self.extra_prior = None  # optional params (B, P) -> (B,) added once (a video's temporal prior)
+        self.share_parts = False  # evaluate the light's parts once for all faces (objective)
         if self.num_gains:
             self.intensity = intensity_mask(self.model)
 
@@ -108,16 +110,21 @@ class JointProblem:
         total = self.first.light_prior(params)
         gains = self.gains(side) if self.num_gains else None
         data, per_face, rad0 = 0.0, [], None
+        # one light, one evaluation of its parts for all faces (a compact-sun model without gains;
+        # ``share_parts``: the gradients then sum in another order, so results move in the last bits)
+        share = self.share_parts and gains is None and self.hybrid is not None and self.K > 1
+        parts = self.model.light_parts(params) if share else None
         for i, prob in enumerate(self.faces):
             p_i = params if gains is None else self.face_params(params, gains[:, i])
-            d_i, rad = prob.data_term(p_i, albedo[:, i], side[:, i])
+            d_i, rad = prob.data_term(p_i, albedo[:, i], side[:, i], parts)
             if i == 0:
                 rad0 = rad
             a_i = prob.albedo_term(albedo[:, i])
             data = data + self.weights[i] * d_i
             total = total + self.weights[i] * (d_i if a_i is None else d_i + a_i)
             per_face.append(d_i.detach())
-        for term in (self.first.sun_elevation_term(params), self.first.negativity_term(params, rad0)):
+        extra = None if self.extra_prior is None else self.extra_prior(params)
+        for term in (self.first.sun_elevation_term(params), self.first.negativity_term(params, rad0), extra):
             if term is not None:
                 total = total + term
         self.last_data = torch.stack(per_face)
@@ -259,7 +266,44 @@ def _fit_group(observations, problems, model, cfg: EstimatorConfig, noise, group
     return _fit(jp, model, cfg, t_start, [o.face_id for o in observations])
 
 
-def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids) -> tuple[EstimateResult, _Fit]:
+def refit_joint(observations: list[FaceObservation], model: LightingModel, start: np.ndarray,
+                config: EstimatorConfig | None = None, *, extra_prior=None,
+                exposure_group: list[int] | None = None, pixel_rc: list | None = None,
+                problems: list | None = None) -> tuple[EstimateResult, list[FaceShare]]:
+    """One light for ``observations`` fitted from ``start`` (the model's parameters, e.g. the last
+    window's light): no sun search, no disagreement tests, ``config.max_iter`` L-BFGS iterations
+    (the elevation profile runs only if ``config.sun_elevation_profile_deg`` is set).
+    ``extra_prior`` (params (B, P) tensor -> (B,)) is added to the objective once. Not for
+    latent-sky models (raises :class:`JointUnsupported`). ``problems``: the faces' FaceProblems
+    built before with this model and config (a clip's windows share faces); None builds them.
+    Returns the result and each face's share."""
+    t_start = time.perf_counter()
+    cfg = config or EstimatorConfig()
+    if isinstance(model, LatentSky):
+        raise JointUnsupported(f"model {model.name!r}: a warm refit needs explicit light parameters")
+    K = len(observations)
+    if K == 0:
+        raise EstimationError("joint refit: no faces")
+    torch.set_num_threads(max(1, cfg.threads))
+    problems = problems or [FaceProblem(o, model, cfg, torch.float64) for o in observations]
+    if problems[0].hybrid is not None and K > 1:
+        setup = problems[0].search_setup() if cfg.sun_elevation_profile_deg else None
+        for p in problems:
+            p._setup = setup
+    torch.set_num_threads(1)
+    noise = [face_noise(o, None if pixel_rc is None else pixel_rc[i]) for i, o in enumerate(observations)]
+    weights = face_weights(observations, cfg, noise)
+    jp = JointProblem(problems, weights, _renumber(exposure_group if exposure_group is not None else [0] * K))
+    jp.extra_prior = extra_prior
+    jp.share_parts = True
+    result, fit = _fit(jp, model, cfg, t_start, [o.face_id for o in observations], start=start)
+    shares = [FaceShare(face_id=o.face_id, weight=fit.weights[i], albedo=fit.albedo[i], ground_albedo=fit.ground[i],
+                        gain=fit.gain[i], data=fit.data[i]) for i, o in enumerate(observations)]
+    return result, shares
+
+
+def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids,
+         start: np.ndarray | None = None) -> tuple[EstimateResult, _Fit]:
     dtype = torch.float64
     first, K = jp.first, jp.K
     if jp.hybrid is not None:  # a fit before may have dropped the exact sun core (an overcast group)
@@ -269,11 +313,16 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     rho_start = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), np.float64)
     t_search = time.perf_counter()
     weight_idx = None
-    if jp.hybrid is not None:
-        setup = _setup(first)
-        scores = [_scores(p, setup, cfg) for p in jp.faces]
-        found = sun_search.pick(sun_search.combine(scores, np.asarray(jp.weights)), first.grid)
-        theta0 = first.starts_from(found, setup[1], rho_start)
+    if start is not None and jp.hybrid is None:
+        theta0 = _inside(np.asarray(start, np.float64).reshape(1, -1), lo, hi)
+    elif jp.hybrid is not None:
+        if start is not None:  # the light's own parameters, as the search's starts give them
+            theta0 = _inside(np.asarray(start, np.float64).reshape(1, -1), lo, hi)
+        else:
+            setup = _setup(first)
+            scores = [_scores(p, setup, cfg) for p in jp.faces]
+            found = sun_search.pick(sun_search.combine(scores, np.asarray(jp.weights)), first.grid)
+            theta0 = first.starts_from(found, setup[1], rho_start)
         lo, hi = lo.copy(), hi.copy()
         lo[model.sun_layout.azimuth], hi[model.sun_layout.azimuth] = -np.inf, np.inf
         weight_idx = list(model.sun_layout.sky_rgb) + list(model.sun_layout.sun_rgb)
@@ -303,7 +352,7 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
         side = torch.cat([torch.sigmoid(x_side[:, :K]), x_side[:, K:]], 1)
         return params, rho, side
 
-    if not first.linear and jp.hybrid is None:  # scale the model's starts to the observations
+    if start is None and not first.linear and jp.hybrid is None:  # scale the model's starts to the observations
         with torch.no_grad():
             params, rho, side = unpack(x_theta, x_side, x_rho)
             ratios = []
@@ -389,6 +438,13 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
                gain=dict(zip(index, gains.astype(float))), data=dict(zip(index, per_face.astype(float))), index=index)
     fit.problems = jp.faces
     return result, fit
+
+
+def _inside(theta: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``theta`` moved just inside the model's finite bounds (a start on a bound has no unconstrained value)."""
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    return np.clip(theta, np.where(np.isfinite(lo), lo + 1e-6 * span, -np.inf),
+                   np.where(np.isfinite(hi), hi - 1e-6 * span, np.inf))
 
 
 def _stacked_least_squares(jp: JointProblem, albedo: np.ndarray, ground_albedo: float) -> np.ndarray:

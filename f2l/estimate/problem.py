@@ -212,8 +212,9 @@ class FaceProblem:
         return torch.sqrt(resid * resid + eps**2).sum((1, 2))
 
     # -- forward model -----------------------------------------------------------------------------
-    def light_transport(self, params: torch.Tensor, ground_albedo: torch.Tensor | None):
-        """Returns (T l (B, N, 3), radiance (B, L, 3) or None when not needed)."""
+    def light_transport(self, params: torch.Tensor, ground_albedo: torch.Tensor | None, parts=None):
+        """Returns (T l (B, N, 3), radiance (B, L, 3) or None when not needed). ``parts``: the
+        model's ``light_parts(params)`` when already computed (faces sharing one light)."""
         if self.linear:
             coeffs = params.reshape(params.shape[0], -1, 3)
             tl = torch.einsum("nk,bkc->bnc", self.TB, coeffs)
@@ -224,7 +225,7 @@ class FaceProblem:
         if self.hybrid is not None:
             # l = w_sky ⊙ sky + w_sun ⊙ lobe on the sky rows: the transport reads its block means
             # and E_h, each the sum of the sky's (read once) and the sparse lobe's
-            sky, w_sky, sun = self.model.light_parts(params)
+            sky, w_sky, sun = self.model.light_parts(params) if parts is None else parts
             vals, flat, w_sun = sun
             m_unit, e_unit = self.hybrid.sky_summary(sky, self.e_sky)
             lobe_m = self.hybrid.lobe_block_means(vals, flat)
@@ -249,11 +250,12 @@ class FaceProblem:
             return torch.einsum("lk,bkc->blc", self.basis, params.reshape(params.shape[0], -1, 3))
         return self.model.radiance(params)
 
-    def data_term(self, params, albedo, ground_albedo) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def data_term(self, params, albedo, ground_albedo, parts=None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Per-start data term (B,): mean Charbonnier(s - s*) / mean(s*), plus the clipped pixels'
-        censored terms; and the radiance (B, L, 3) where the forward model computed it."""
+        censored terms; and the radiance (B, L, 3) where the forward model computed it.
+        ``parts``: as :meth:`light_transport`'s."""
         cfg = self.cfg
-        tl, rad = self.light_transport(params, ground_albedo)
+        tl, rad = self.light_transport(params, ground_albedo, parts)
         pred = self.apparent(albedo)[:, None, :] * tl
         clip_extra = None
         if self.refl is not None:  # the skin's reflection of the environment (skin_reflection)
