@@ -21,7 +21,11 @@ the photo is searched at several scales instead (:func:`tile_plan`):
   when they do not touch the window's edge (a face cut by the edge lies whole in a neighbour);
 * all levels' detections are merged in photo pixels by MediaPipe's weighted non-maximum
   suppression (IoU > ``NMS_IOU``), and a box mostly inside a higher-scoring one
-  (intersection over the smaller box > ``CONTAIN_IOM``) is dropped as its duplicate.
+  (intersection over the smaller box > ``CONTAIN_IOM``) is dropped as its duplicate;
+* hits scoring in ``[LOW_SCORE, min_score)`` are merged apart into *candidates* (those not on a
+  detection). A candidate, or a detection the landmark model doubts, counts only when it is
+  confirmed (:meth:`TiledDetector.support`: the model finds it again in windows centred on it, at
+  its level's scale and 1.3× either side, each as is and mirrored; the landmarker decides).
 
 Detections are in photo pixels (x right, y down, pixel centres at +0.5): box (x0, y0, x1, y1),
 6 keypoints (the subject's right eye, left eye, nose tip, mouth, right and left tragion), score.
@@ -47,15 +51,25 @@ TOP_FACE_FRACTION = 1.25  # the widest face searched for, as a fraction of the l
 # each level starts this factor below where the last one's band ends, so a face near the boundary is
 # also seen by the finer level, at more than its band's lower end (a 167 px box at 17 px scored 0.47)
 LEVEL_OVERLAP = 1.3  # a box this close to an inner window edge is left to the neighbouring window
+# hits from here up to the spec's min_score are candidates, kept only when confirmed: at 0.5 as plain
+# detections they gave 4 false faces per 100 face-free photos (docs/experiments/face_detection.md)
+LOW_SCORE = 0.45
+# the windows that confirm a face: (scale factor on its level's scale, mirrored left to right)
+SUPPORT_WINDOWS = ((1.0, False), (1.0, True), (1.3, False), (1 / 1.3, False), (1.3, True), (1 / 1.3, True))
+SUPPORT_IOU = 0.5  # a hit in a support window is the same face when it overlaps it this much
+# keypoint order after mirroring: right and left eye swap, and so do the tragions
+_MIRRORED_KEYPOINTS = (1, 0, 2, 3, 5, 4)
 
 
 @dataclass(frozen=True)
 class Detection:
-    """A face detection in photo pixels: box (x0, y0, x1, y1), 6 keypoints (6, 2), score."""
+    """A face detection in photo pixels: box (x0, y0, x1, y1), 6 keypoints (6, 2), score, and the
+    scale (window px per photo px) of the level where its best hit was found (0: not known)."""
 
     box: np.ndarray
     keypoints: np.ndarray
     score: float
+    scale: float = 0.0
 
     @property
     def width(self) -> float:
@@ -146,10 +160,12 @@ def tile_plan(height: int, width: int, spec: DetectorSpec, min_face_px: float = 
 class TiledDetector:
     """Run a BlazeFace interpreter (LiteRT) over :func:`tile_plan`'s windows of an RGB uint8 photo."""
 
-    def __init__(self, interpreter, spec: DetectorSpec, *, min_score: float | None = None) -> None:
+    def __init__(self, interpreter, spec: DetectorSpec, *, min_score: float | None = None,
+                 low_score: float = LOW_SCORE) -> None:
         self.interpreter = interpreter
         self.spec = spec
         self.min_score = spec.min_score if min_score is None else float(min_score)
+        self.low_score = min(self.min_score, float(low_score))
         self._anchors = spec.anchors()
         self._in = interpreter.get_input_details()[0]["index"]
         outs = interpreter.get_output_details()
@@ -166,12 +182,12 @@ class TiledDetector:
         logits = np.clip(it.get_tensor(self._cls)[0, :, 0].astype(np.float64), -80.0, 80.0)
         return reg, 1.0 / (1.0 + np.exp(-logits))
 
-    def window(self, window: np.ndarray):
+    def window(self, window: np.ndarray, min_score: float | None = None):
         """Raw detections of one N × N window: boxes (K, 4), keypoints (K, 6, 2) in window px,
-        scores (K,), those above ``min_score``."""
+        scores (K,), those above ``min_score`` (default: the detector's)."""
         n = self.spec.input_size
         reg, scores = self._invoke(window)
-        keep = scores >= self.min_score
+        keep = scores >= (self.min_score if min_score is None else min_score)
         reg, scores, anchors = reg[keep], scores[keep], self._anchors[keep]
         centre = reg[:, 0:2] + anchors * n
         size = reg[:, 2:4]
@@ -181,12 +197,19 @@ class TiledDetector:
 
     def __call__(self, image: np.ndarray, min_face_px: float = 40.0,
                  max_face_px: float | None = None) -> list[Detection]:
-        image = np.asarray(image)
-        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f"expected an 8-bit RGB image (H, W, 3) uint8, got {image.dtype} {image.shape}")
+        """The detections (score >= ``min_score``), merged, highest score first."""
+        return self.find(image, min_face_px, max_face_px)[0]
+
+    def find(self, image: np.ndarray, min_face_px: float = 40.0,
+             max_face_px: float | None = None) -> tuple[list[Detection], list[Detection]]:
+        """(detections, candidates): the merged hits scoring at least ``min_score``, and apart from
+        them the merged hits in ``[low_score, min_score)`` that lie on no detection (IoU > ``NMS_IOU``
+        or mostly inside or around one), each highest score first. The detections are those of a
+        search with ``min_score`` alone."""
+        image = _check_rgb(image)
         h, w = image.shape[:2]
         n = self.spec.input_size
-        found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        found: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         for level in tile_plan(h, w, self.spec, min_face_px, max_face_px):
             # one band of the resized photo per row of windows: memory is a band, not the level
             for y0 in sorted({y for _, y in level.origins}):
@@ -203,18 +226,73 @@ class TiledDetector:
                         pad[:win.shape[0], :win.shape[1]] = win
                         win = pad
                     self.windows_run += 1
-                    kept = self._keep(*self.window(win), (x0, y0), level.size)
+                    kept = self._keep(*self.window(win, self.low_score), (x0, y0), level.size)
                     if kept is None:
                         continue
                     boxes, kps, scores = kept
                     # window px -> photo px: x by the level's scale, y by the band's own
                     scale = np.array([sx, 1.0 / sy])
                     off = np.array([x0 * sx, row0])
-                    found.append((boxes * np.tile(scale, 2) + np.tile(off, 2), kps * scale + off, scores))
+                    found.append((boxes * np.tile(scale, 2) + np.tile(off, 2), kps * scale + off, scores,
+                                  np.full(len(scores), level.scale)))
         if not found:
-            return []
-        boxes, kps, scores = (np.concatenate(parts) for parts in zip(*found))
-        return merge_detections(boxes, kps, scores)
+            return [], []
+        boxes, kps, scores, scales = (np.concatenate(parts) for parts in zip(*found))
+        high = scores >= self.min_score
+        detections = merge_detections(boxes[high], kps[high], scores[high], scales=scales[high])
+        low = merge_detections(boxes[~high], kps[~high], scores[~high], scales=scales[~high])
+        if detections and low:
+            taken = np.array([d.box for d in detections])
+            low = [c for c in low if not _overlaps(c.box, taken, NMS_IOU, CONTAIN_IOM).any()]
+        return detections, low
+
+    def support(self, image: np.ndarray, detection: Detection) -> float:
+        """How firmly the model finds ``detection`` again: the sum, over ``SUPPORT_WINDOWS`` (N × N
+        windows centred on its box at its level's scale and 1.3× either side, each as is and
+        mirrored), of the best score (>= ``low_score``) of a hit overlapping its box by IoU >
+        ``SUPPORT_IOU``; 0 to 6. Measured: true faces the landmark model doubts 4.2-4.7, path-traced
+        faces scoring under ``min_score`` 2.4-3.9, face-like textures of face-free photos up to 3.1
+        (``docs/experiments/face_detection.md``)."""
+        image = _check_rgb(image)
+        scale = detection.scale or self.spec.band_px[1] / max(detection.width, 1.0)
+        cx, cy = (detection.box[0] + detection.box[2]) / 2, (detection.box[1] + detection.box[3]) / 2
+        total = 0.0
+        for factor, mirrored in SUPPORT_WINDOWS:
+            boxes, _, scores = self._window_at(image, cx, cy, scale * factor, mirrored)
+            same = iou(detection.box, boxes) > SUPPORT_IOU if len(scores) else np.zeros(0, bool)
+            total += float(scores[same].max()) if same.any() else 0.0
+        return total
+
+    def _window_at(self, image: np.ndarray, cx: float, cy: float, scale: float, mirrored: bool):
+        """Hits (>= ``low_score``) of the N × N window centred at photo (cx, cy) with the photo
+        resized by ``scale`` (black past its edges), mirrored left to right if asked; boxes and
+        keypoints in photo px, keypoints in the subject's order."""
+        import cv2
+
+        n = self.spec.input_size
+        side = n / scale
+        x0, y0 = cx - side / 2, cy - side / 2
+        if scale < 1:  # area averaging of the photo region, padded black past the photo's edges
+            xa, ya = math.floor(x0), math.floor(y0)
+            xb, yb = math.ceil(x0 + side), math.ceil(y0 + side)
+            h, w = image.shape[:2]
+            region = np.zeros((yb - ya, xb - xa, 3), np.uint8)
+            sx0, sy0, sx1, sy1 = max(0, xa), max(0, ya), min(w, xb), min(h, yb)
+            if sx1 > sx0 and sy1 > sy0:
+                region[sy0 - ya:sy1 - ya, sx0 - xa:sx1 - xa] = image[sy0:sy1, sx0:sx1]
+            win = cv2.resize(region, (n, n), interpolation=cv2.INTER_AREA)
+            step, origin = np.array([(xb - xa) / n, (yb - ya) / n]), np.array([xa, ya], float)
+        else:
+            affine = np.array([[scale, 0.0, -x0 * scale], [0.0, scale, -y0 * scale]])
+            win = cv2.warpAffine(image, affine, (n, n), flags=cv2.INTER_LINEAR, borderValue=0)
+            step, origin = np.array([1 / scale, 1 / scale]), np.array([x0, y0])
+        if mirrored:
+            win = np.ascontiguousarray(win[:, ::-1])
+        boxes, kps, scores = self.window(win, self.low_score)
+        if mirrored:
+            boxes = np.stack([n - boxes[:, 2], boxes[:, 1], n - boxes[:, 0], boxes[:, 3]], axis=1)
+            kps = np.stack([n - kps[..., 0], kps[..., 1]], axis=-1)[:, _MIRRORED_KEYPOINTS]
+        return boxes * np.tile(step, 2) + np.tile(origin, 2), kps * step + origin, scores
 
     def _keep(self, boxes, kps, scores, origin, level_size):
         """The window's detections inside the level's band and not cut by an inner window edge."""
@@ -231,6 +309,13 @@ class TiledDetector:
         if not ok.any():
             return None
         return boxes[ok], kps[ok], scores[ok]
+
+
+def _check_rgb(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an 8-bit RGB image (H, W, 3) uint8, got {image.dtype} {image.shape}")
+    return image
 
 
 def _level_band(image: np.ndarray, level: Level, y0: int, n: int):
@@ -268,12 +353,22 @@ def iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return inter / np.maximum(_area(box) + _area(boxes) - inter, 1e-12)
 
 
+def _overlaps(box: np.ndarray, boxes: np.ndarray, iou_threshold: float, contain: float) -> np.ndarray:
+    """Which of ``boxes`` overlap ``box`` by IoU > iou_threshold or lie mostly inside or around it."""
+    inter = _intersection(box, boxes)
+    smaller = np.minimum(_area(box), _area(boxes))
+    return (inter / np.maximum(_area(box) + _area(boxes) - inter, 1e-12) > iou_threshold) | (
+        inter / np.maximum(smaller, 1e-12) > contain)
+
+
 def merge_detections(boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray,
-                     iou_threshold: float = NMS_IOU, contain: float = CONTAIN_IOM) -> list[Detection]:
+                     iou_threshold: float = NMS_IOU, contain: float = CONTAIN_IOM,
+                     scales: np.ndarray | None = None) -> list[Detection]:
     """MediaPipe's weighted non-maximum suppression, highest score first: each cluster (IoU >
     threshold with its best member) becomes the score-weighted mean of its members' boxes and
-    keypoints; a box mostly inside or around the best one (intersection over the smaller box >
-    ``contain``: a part of the face found alone, or the face with its surroundings) is dropped."""
+    keypoints (and takes the best member's ``scales`` entry); a box mostly inside or around the best
+    one (intersection over the smaller box > ``contain``: a part of the face found alone, or the
+    face with its surroundings) is dropped."""
     order = np.argsort(-scores, kind="stable")
     remaining = order
     out = []
@@ -289,6 +384,7 @@ def merge_detections(boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarra
         w = scores[members] / scores[members].sum()
         out.append(Detection(box=(w[:, None] * boxes[members]).sum(0),
                              keypoints=(w[:, None, None] * keypoints[members]).sum(0),
-                             score=float(scores[best])))
+                             score=float(scores[best]),
+                             scale=float(scales[best]) if scales is not None else 0.0))
         remaining = remaining[~overlap]
     return out
