@@ -20,8 +20,8 @@ def render_faces_cmd(
     n: int = typer.Option(8, "--n", help="Number of cases."),
     seed: int = typer.Option(0, help="Random seed: case i of a seed is the same person, pose, camera and sky in every variant."),
     start: int = typer.Option(0, help="First case index (render a set in parts)."),
-    image_px: int = typer.Option(384, help="Photo size in pixels (square)."),
-    spp: int = typer.Option(64, help="Path-tracing samples per pixel."),
+    image_px: Optional[int] = typer.Option(None, help="Photo size in pixels (square; default 384), or with --sequence the frame's long side (16:9; default 1280)."),
+    spp: Optional[int] = typer.Option(None, help="Path-tracing samples per pixel (default 64; --sequence: 4 on the head, half that on the torso, denoised)."),
     max_depth: int = typer.Option(6, help="Path length: 6 includes interreflection; 2 is direct light only."),
     specular: bool = typer.Option(True, "--specular/--no-specular", help="Skin with a specular lobe (principled BSDF) or Lambertian."),
     head: str = typer.Option("anny", help="anny (random Anny adults) or canonical (MediaPipe's canonical face, closed: an ablation)."),
@@ -31,9 +31,13 @@ def render_faces_cmd(
     framing: str = typer.Option("portrait", help="portrait (one head, 35-55% of a square frame), half (one person, head 12-25% of a 3:2 frame's long side), full (4-10%) or group (2-5 people, 5-14% each, one light); wider framings use --image-px as the long side (1280 suggested)."),
     shade_one: bool = typer.Option(False, "--shade-one", help="--framing group: under a clear sky a dark board puts one person's face in its shadow (meta: shaded_person)."),
     session_size: int = typer.Option(1, "--session-size", help="--framing portrait: sessions of K photos (cases jK..jK+K-1) under the first one's light, each with its own person and a camera turned within ±90° (meta: session, camera_yaw_deg); 1: off."),
+    sequence: bool = typer.Option(False, "--sequence", help="Video clips instead of photos: one person turning (±45° yaw) and nodding under one light, a static camera, noise and mp4v compression (clips/, truth/, probes/, clips.json; f2l.render.sequence)."),
+    clip_kind: str = typer.Option("mixed", "--clip-kind", help="--sequence: static (one light), cloud (the sun drops to 10-20% halfway), cut (another shot halfway) or mixed (clip i cycles them)."),
+    frames: int = typer.Option(48, "--frames", help="--sequence: frames per clip."),
+    fps: float = typer.Option(24.0, "--fps", help="--sequence: frames per second."),
     json_out: JsonOut = False,
 ) -> None:
-    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups."""
+    """Path-trace photos of heads f2l did not model (Mitsuba 3, Anny) under real HDR maps and physical skies, framed as portraits, half or full shots, or groups; or, with --sequence, video clips of a head turning and nodding."""
     from f2l.render import RenderExtraMissing
     from f2l.render.dataset import RenderOptions, render_faces
     from f2l.render.heads import require_anny
@@ -44,11 +48,19 @@ def render_faces_cmd(
         require_anny()
     except RenderExtraMissing as exc:
         fail(str(exc))
+    if image_px is None:
+        image_px = 1280 if sequence else 384
+    if spp is None:
+        spp = 4 if sequence else 64
     try:
         options = RenderOptions(image_px=image_px, spp=spp, max_depth=max_depth, specular=specular, head=head,
                                 clipping=clipping, sunsky_fraction=sunsky_fraction, maps=maps, shade_one=shade_one)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
+    if sequence:
+        _render_sequence(out, n, seed, start, options, clip_kind, frames, fps, json_out,
+                         other=framing != "portrait" or shade_one or session_size != 1 or head != "anny")
+        return
     from f2l.render.framing import FRAMINGS, render_framed
 
     if framing not in FRAMINGS:
@@ -62,6 +74,25 @@ def render_faces_cmd(
             summary = render_faces(out, n, seed, options, start=start, progress=progress, session_size=session_size)
         else:
             summary = render_framed(out, framing, n, seed, options, start=start, progress=progress)
+    typer.echo(json.dumps(summary, indent=None if json_out else 2))
+    if summary["cases"] and len(summary["errors"]) == summary["cases"]:
+        raise typer.Exit(code=1)
+
+
+def _render_sequence(out: Path, n: int, seed: int, start: int, options, clip_kind: str, frames: int, fps: float,
+                     json_out: bool, other: bool) -> None:
+    """``render-faces --sequence``: the clips of f2l.render.sequence, its index printed."""
+    from f2l.render.sequence import SequenceOptions, render_clips
+
+    if other:
+        raise typer.BadParameter("--sequence renders one Anny person: no --framing, --shade-one, --session-size "
+                                 "or --head canonical", param_hint="--sequence")
+    try:
+        sequence = SequenceOptions(frames=frames, fps=fps, clip_kind=clip_kind)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--clip-kind/--frames/--fps") from exc
+    with progress_bars(not json_out) as progress:
+        summary = render_clips(out, n, seed, options, sequence, start=start, progress=progress)
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     if summary["cases"] and len(summary["errors"]) == summary["cases"]:
         raise typer.Exit(code=1)

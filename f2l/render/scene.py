@@ -219,6 +219,31 @@ def _disc(mi, disc: dict) -> dict:
                                                                                       "value": [OCCLUDER_REFLECTANCE] * 3}}}}
 
 
+def head_parts(head: Head) -> dict[str, np.ndarray]:
+    """The triangles of each material of ``head`` (``skin``, ``hair``, ``eye``, ``diffuse``: shirt
+    and cavities), as boolean masks over its faces; :func:`_bsdf` gives each its BSDF."""
+    return {"skin": np.isin(head.part, [PART_SKIN]), "hair": head.part == PART_HAIR,
+            "eye": head.part == PART_EYE, "diffuse": np.isin(head.part, [PART_SHIRT, PART_CAVITY])}
+
+
+def sensor_dict(mi, settings: RenderSettings, pixel_format: str = "rgba", crop_px=None,
+                sampler: str = "independent") -> dict:
+    """The pinhole camera of ``settings`` (at +Z ``camera_distance_cm``, looking at the origin) as a
+    Mitsuba dict; ``crop_px`` (x0, y0, x1, y1) renders only that window of the frame; ``sampler``
+    a Mitsuba sampler plugin."""
+    film = {"type": "hdrfilm", "width": int(settings.width_px), "height": int(settings.height_px),
+            "pixel_format": pixel_format, "rfilter": {"type": "gaussian"}}
+    if crop_px is not None:
+        x0, y0, x1, y1 = (int(v) for v in crop_px)
+        film.update(crop_offset_x=x0, crop_offset_y=y0, crop_width=x1 - x0, crop_height=y1 - y0)
+    return {"type": "perspective", "fov": float(settings.fov_x_deg), "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, settings.camera_distance_cm],
+                                                      target=[0, 0, 0], up=[0, 1, 0]),
+            "film": film,
+            "sampler": {"type": sampler, "sample_count": int(settings.spp),
+                        "seed": int(settings.seed) % (2**31)}}
+
+
 def render_head(head: Head, lighting, settings: RenderSettings, occluders=()) -> dict:
     """Path-trace ``head`` (already posed) under ``lighting``, with ``occluders``: discs
     ``{"center_cm": (3,), "normal": (3,), "radius_cm": r}`` in the same frame.
@@ -227,23 +252,15 @@ def render_head(head: Head, lighting, settings: RenderSettings, occluders=()) ->
     the ray leaves the scene), "focal_px": float}``.
     """
     mi = mitsuba()
-    parts = {"skin": np.isin(head.part, [PART_SKIN]), "hair": head.part == PART_HAIR,
-             "eye": head.part == PART_EYE, "diffuse": np.isin(head.part, [PART_SHIRT, PART_CAVITY])}
     scene: dict = {
         "type": "scene",
         "integrator": {"type": "aov", "aovs": "dd:depth",
                        "image": {"type": "path", "max_depth": int(settings.max_depth)}},
-        "sensor": {"type": "perspective", "fov": float(settings.fov_x_deg), "fov_axis": "x",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, settings.camera_distance_cm],
-                                                             target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": int(settings.width_px), "height": int(settings.height_px),
-                            "pixel_format": "rgba", "rfilter": {"type": "gaussian"}},
-                   "sampler": {"type": "independent", "sample_count": int(settings.spp),
-                               "seed": int(settings.seed) % (2**31)}},
+        "sensor": sensor_dict(mi, settings, "rgba"),
     }
     scene.update(lighting.emitters(mi))
     with tempfile.TemporaryDirectory() as tmp:
-        for kind, mask in parts.items():
+        for kind, mask in head_parts(head).items():
             if mask.any():
                 path = Path(tmp) / f"{kind}.ply"
                 _write_ply(path, head, mask)
