@@ -27,7 +27,7 @@ from typing import Optional
 import typer
 
 from f2l import __version__
-from f2l.cli import build, capture, colour, evaluation, face, research, user
+from f2l.cli import build, capture, colour, evaluation, face, research, user, video
 from f2l.cli.common import fail
 
 USER_PANEL = "Your photos and captures"
@@ -70,7 +70,7 @@ USER_COMMANDS = {
     "estimate": user.estimate, "fit-faces": face.fit_faces_cmd, "ingest": capture.ingest_cmd,
     "make-probes": capture.make_probes_cmd, "calibrate": colour.calibrate_cmd,
     "build-dataset": build.build_dataset_cmd, "evaluate": user.evaluate, "report": user.report,
-    "models": user.models, "demo": user.demo,
+    "models": user.models, "demo": user.demo, "video": video.video_cmd,
 }
 """The user's path, in the order ``--help`` lists it."""
 

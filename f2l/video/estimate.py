@@ -1,0 +1,472 @@
+"""Light from a clip: one light per window of frames, restarted at cuts and sudden changes.
+
+A face in a clip turns and nods under the same sky, so its frames are several views of one light
+(:mod:`f2l.estimate.joint`). Per clip (:func:`estimate_clip`):
+
+1. **Track** each face (:mod:`f2l.video.track`) and watch for **changes**: a cut (the frame's
+   colour histogram moves by more than ``cut_distance`` in L1 between two frames) or a sudden
+   change of the light on a face (its skin's mean linear luminance jumps by more than
+   ``change_ratio`` against the median of its last three frames: a cloud over the sun, walking
+   into shade). Each change starts a new **segment**; nothing is shared across segments.
+2. **Sample** a face every ``sample_every`` frames (and at once in a new segment), fitted as a
+   photo's face is (:func:`f2l.face.fit.fit_face`, at ``resolution`` px) but with its transport
+   read from the head's cached table (:mod:`f2l.video.head`) instead of ray casting.
+3. **Estimate** at each sample: the light shared by the segment's samples of the last
+   ``window_s`` seconds (at most ``max_window_faces``, every person's: one camera, one sky). The
+   segment's first estimate is the full joint estimate (sun search, disagreeing faces left out,
+   elevation profile); the next ones start from the last light (:func:`f2l.estimate.joint.refit_joint`,
+   ``warm_iters`` L-BFGS iterations) with a prior on how fast the sun can move in the camera's
+   frame: ``temporal_weight`` · ½ |s − s_last|² / σ², σ² = σ₀² + (``light_rate_deg_s`` · Δt)².
+4. **Every frame** gets the light of its segment, interpolated in time between the estimates
+   around it (each placed at the mean time of its window; the sun's direction interpolated on
+   the sphere), so a static light does not jitter and a frame is never lit by another segment.
+
+Assumed: a static or slowly panning camera (the light is held in the camera's frame) and a fixed
+exposure within a segment (an exposure jump reads as a light change and starts a segment). Flags:
+a person's frames carry the tracker's status (lost, covered, turned, cut off, too small) or the
+fit's refusal; a clip without any usable face gives no light.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from f2l.lighting.grid import LatLongGrid
+
+__all__ = ["ChangeDetector", "Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light",
+           "interpolate_params", "skin_luminance"]
+
+# landmarks on the forehead, cheeks and chin (MediaPipe's 468-point topology): the skin's brightness
+SKIN_LANDMARKS = (10, 151, 9, 108, 337, 50, 280, 118, 347, 123, 352, 205, 425, 199, 175)
+HISTOGRAM_BINS = 16
+HISTOGRAM_SIDE = 96  # frames are reduced to this long side for the histogram
+BOX_MARGIN = 1.6  # a face's box widened this much is left out of the frame's histogram (hair, hands)
+
+
+@dataclass(frozen=True)
+class VideoOptions:
+    """Settings of :func:`estimate_clip_light` (module docstring)."""
+
+    model: str = "sunsky"
+    sample_every: int = 8  # frames between a face's samples
+    window_s: float = 1.0  # samples of the last so many seconds share one light
+    max_window_faces: int = 4
+    cold_faces: int = 3  # a segment's first light waits for this many samples (or the segment's end)
+    resolution: int = 64  # working px of a sampled face (a photo's: 104)
+    warm_iters: int = 12
+    light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
+    temporal_sigma_deg: float = 2.0  # sigma_0 of the temporal prior
+    temporal_weight: float = 1e-2
+    change_ratio: float = 1.5
+    cut_distance: float = 0.5
+    min_face_px: float = 40.0
+    keyframe_every: int = 30
+    focal_35mm_mm: float = 50.0  # the camera's 35 mm-equivalent focal length (clips rarely say)
+
+    def __post_init__(self) -> None:
+        if min(self.sample_every, self.max_window_faces, self.warm_iters, self.cold_faces) < 1:
+            raise ValueError("sample_every, max_window_faces, cold_faces and warm_iters must be >= 1")
+        if self.change_ratio <= 1.0 or self.window_s <= 0:
+            raise ValueError("change_ratio must be > 1 and window_s > 0")
+
+
+@dataclass
+class Sample:
+    """One sampled face: its frame, person, observation and pixel positions."""
+
+    frame: int
+    time_s: float
+    person: int
+    observation: object
+    pixel_rc: np.ndarray
+    segment: int
+    problem: object = None  # its FaceProblem for warm refits (built on first use)
+    row: dict = field(default_factory=dict)  # its frame's row in the table
+
+
+@dataclass
+class SampleEstimate:
+    """The light of one window: fitted at ``frame`` from ``window`` (frame indices of its samples)."""
+
+    frame: int
+    time_s: float  # the mean time of its window's samples
+    segment: int
+    params: np.ndarray
+    sun_direction: np.ndarray | None
+    ground_albedo: float | None
+    window: list[int]
+    persons: list[int]
+    residual: dict  # (frame, person) -> the face's data term under this light
+    cold: bool
+    runtime_s: float
+
+
+@dataclass
+class ClipLight:
+    """What :func:`estimate_clip_light` found: per-frame rows, the window estimates, timings."""
+
+    rows: list[dict]
+    estimates: list[SampleEstimate]
+    segments: list[tuple[int, str]]  # (first frame, why it started)
+    fps: float
+    width: int
+    height: int
+    timings: dict = field(default_factory=dict)
+    param_names: list[str] = field(default_factory=list)
+
+
+def skin_luminance(linear_rgb_at: callable, landmarks: np.ndarray) -> float:
+    """Mean linear luminance of the skin around ``SKIN_LANDMARKS`` (``linear_rgb_at(xy)`` samples)."""
+    xy = np.asarray(landmarks, np.float64)[list(SKIN_LANDMARKS), :2]
+    rgb = linear_rgb_at(xy)
+    return float(np.mean(rgb @ np.array([0.2126, 0.7152, 0.0722])))
+
+
+def _patch_sampler(image: np.ndarray, radius: int = 2):
+    """``xy -> linear RGB (n, 3)``: the mean over a (2r+1)² patch of an sRGB uint8 frame."""
+    from f2l.io.photo.core import srgb_to_linear
+
+    h, w = image.shape[:2]
+
+    def sample(xy: np.ndarray) -> np.ndarray:
+        out = []
+        for x, y in xy:
+            c, r = int(np.clip(x, 0, w - 1)), int(np.clip(y, 0, h - 1))
+            patch = image[max(0, r - radius): r + radius + 1, max(0, c - radius): c + radius + 1]
+            out.append(np.asarray(srgb_to_linear(patch.reshape(-1, 3).astype(np.float64) / 255.0)).mean(0))
+        return np.asarray(out)
+
+    return sample
+
+
+def _small(image: np.ndarray) -> tuple[np.ndarray, int]:
+    """The frame reduced (by striding) to about ``HISTOGRAM_SIDE`` px on its long side, and the factor."""
+    k = max(1, int(max(image.shape[:2]) // HISTOGRAM_SIDE))
+    return np.ascontiguousarray(image[::k, ::k]), k
+
+
+def face_free_mask(shape: tuple[int, int], k: int, boxes) -> np.ndarray:
+    """uint8 mask of a reduced frame (``_small``), 0 inside the faces' ``boxes`` (x0, y0, x1, y1
+    px) widened by ``BOX_MARGIN``, 255 elsewhere (all 255 if the faces cover everything)."""
+    mask = np.full(shape, 255, np.uint8)
+    for x0, y0, x1, y1 in boxes:
+        cx, cy, half_w, half_h = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) * BOX_MARGIN / 2, (y1 - y0) * BOX_MARGIN / 2
+        r0, r1 = int(max(0, (cy - half_h) / k)), int(min(shape[0], math.ceil((cy + half_h) / k)))
+        c0, c1 = int(max(0, (cx - half_w) / k)), int(min(shape[1], math.ceil((cx + half_w) / k)))
+        mask[r0:r1, c0:c1] = 0
+    if not mask.any():
+        mask[:] = 255
+    return mask
+
+
+def frame_histogram(small: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The reduced frame's colour histogram where ``mask`` is set: 3 × ``HISTOGRAM_BINS``, each
+    channel's summing to 1."""
+    import cv2
+
+    hist = [cv2.calcHist([np.ascontiguousarray(small[..., c])], [0], mask, [HISTOGRAM_BINS], [0, 256]).ravel()
+            for c in range(3)]
+    return np.concatenate(hist) / max(float((mask > 0).sum()), 1.0)
+
+
+class ChangeDetector:
+    """Cuts and sudden light changes, frame by frame (module docstring, step 1)."""
+
+    def __init__(self, cut_distance: float, change_ratio: float) -> None:
+        self.cut_distance = float(cut_distance)
+        self.change_ratio = float(change_ratio)
+        self._last: tuple[np.ndarray, list] | None = None  # the last reduced frame and its face boxes
+        self._skin: dict[int, deque] = {}
+
+    def reset(self) -> None:
+        self._skin.clear()
+
+    def update(self, image: np.ndarray, faces) -> str | None:
+        """Why a new segment starts at this frame (``"cut: ..."``, ``"light: ..."``), or None.
+        The colours are compared outside both frames' face boxes."""
+        small, k = _small(image)
+        boxes = [f.box for f in faces if f.box is not None]
+        why = None
+        if self._last is not None and self._last[0].shape == small.shape:
+            # both frames outside both frames' faces: a face that moves, turns or is covered is no cut
+            mask = face_free_mask(small.shape[:2], k, boxes + self._last[1])
+            distance = float(np.abs(frame_histogram(small, mask) - frame_histogram(self._last[0], mask)).sum() / 3.0)
+            if distance > self.cut_distance:
+                why = f"cut: the frame's colours moved by {distance:.2f} (limit {self.cut_distance:.2f})"
+        self._last = (small, boxes)
+        if why is not None:
+            self.reset()
+        sample = _patch_sampler(image)
+        for face in faces:
+            if face.landmarks is None or face.status != "ok":
+                continue
+            lum = skin_luminance(sample, face.landmarks)
+            past = self._skin.setdefault(face.person, deque(maxlen=3))
+            if why is None and len(past) == past.maxlen:
+                ref = float(np.median(past))
+                ratio = lum / max(ref, 1e-6)
+                if ratio > self.change_ratio or ratio < 1.0 / self.change_ratio:
+                    why = (f"light: person {face.person}'s skin changed {ratio:.2f}x in a frame "
+                           f"(limit {self.change_ratio:.2f}x)")
+            past.append(lum)
+        if why is not None and why.startswith("light"):
+            keep = {f.person: self._skin[f.person][-1] for f in faces if f.person in self._skin}
+            self.reset()
+            for person, lum in keep.items():
+                self._skin.setdefault(person, deque(maxlen=3)).append(lum)
+        return why
+
+
+def _temporal_prior(model, last: SampleEstimate, dt_s: float, options: VideoOptions):
+    """The prior on the sun's move since ``last`` (module docstring, step 3), or None."""
+    import torch
+
+    if last.sun_direction is None or not hasattr(model, "sun_angles"):
+        return None
+    lay = model.sun_angles
+    s0 = torch.as_tensor(np.asarray(last.sun_direction, np.float64))
+    sigma = math.radians(math.hypot(options.temporal_sigma_deg, options.light_rate_deg_s * max(dt_s, 0.0)))
+    weight = options.temporal_weight
+
+    def prior(params):
+        el, az = params[:, lay.elevation], params[:, lay.azimuth]
+        d = torch.stack([torch.cos(el) * torch.sin(az), torch.sin(el), -torch.cos(el) * torch.cos(az)], 1)
+        return weight * 0.5 * ((d - s0) ** 2).sum(1) / sigma**2
+
+    return prior
+
+
+def interpolate_params(model, a: SampleEstimate, b: SampleEstimate, time_s: float) -> np.ndarray:
+    """The light at ``time_s`` between two estimates of one segment: parameters linear in time,
+    the sun's direction along the great circle (its angles set from it)."""
+    span = b.time_s - a.time_s
+    t = 0.0 if span <= 0 else float(np.clip((time_s - a.time_s) / span, 0.0, 1.0))
+    params = (1.0 - t) * a.params + t * b.params
+    if a.sun_direction is not None and b.sun_direction is not None and hasattr(model, "sun_angles"):
+        from f2l.lighting.grid import angles_from_direction
+
+        u, v = np.asarray(a.sun_direction, np.float64), np.asarray(b.sun_direction, np.float64)
+        omega = math.acos(float(np.clip(u @ v, -1.0, 1.0)))
+        d = u if omega < 1e-9 else (math.sin((1 - t) * omega) * u + math.sin(t * omega) * v) / math.sin(omega)
+        el, az = angles_from_direction(d / np.linalg.norm(d))
+        params[model.sun_angles.elevation] = float(el)
+        params[model.sun_angles.azimuth] = float(az)
+    return params
+
+
+def _fit_options(resolution: int, grid: LatLongGrid, min_face_px: float):
+    from f2l.pipeline.faces import fit_options
+    from f2l.pipeline.spec import load_pipeline
+
+    spec = load_pipeline()
+    fit = dict(spec.params("fit-faces"))
+    fit["min_face_px"] = float(min_face_px)
+    options = fit_options(fit, spec.params("transport"), (grid.height, grid.width))
+    return dataclasses.replace(options, resolution=int(resolution))
+
+
+def default_grid() -> LatLongGrid:
+    """The pipeline's lighting grid."""
+    from f2l.pipeline.spec import load_pipeline
+
+    spec = load_pipeline()
+    return LatLongGrid(spec.grid_height, spec.grid_width)
+
+
+def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: float, width: int, height: int,
+                        head=None, grid: LatLongGrid | None = None, config=None, progress=None,
+                        total_frames: int | None = None) -> ClipLight:
+    """The light of every frame of a tracked clip (module docstring).
+
+    ``frames``: :class:`f2l.video.track.TrackedFrame` in order (``track_clip``). ``head``: a
+    :class:`f2l.video.head.HeadTransport` (default: the cached one for ``grid``). ``config``: the
+    estimator's :class:`~f2l.estimate.config.EstimatorConfig`. ``progress``: a
+    :data:`f2l.io.progress.ProgressCallback` (one event a frame, of ``total_frames``)."""
+    from f2l.estimate.config import EstimatorConfig
+    from f2l.estimate.joint import JointUnsupported, estimate_joint, refit_joint
+    from f2l.estimate.observation import EstimationError, FaceObservation
+    from f2l.estimate.record import _get_model
+    from f2l.face.fit import FaceFit, fit_face
+    from f2l.io.photo.core import Photo
+    from f2l.io.photo.exif import DIAGONAL_35MM_MM
+    from f2l.video.head import cached_head_transport
+
+    from f2l.io.progress import Progress
+
+    t_start = time.perf_counter()
+    report = Progress(progress, "video", "frame", total_frames)
+    grid = grid or default_grid()
+    head = head or cached_head_transport(grid)
+    model = _get_model(options.model, grid)
+    cfg = config or EstimatorConfig()
+    warm_cfg = dataclasses.replace(cfg, sun_elevation_profile_deg=(), max_iter=options.warm_iters)
+    fit_opts = _fit_options(options.resolution, grid, options.min_face_px)
+    focal_px = options.focal_35mm_mm / DIAGONAL_35MM_MM * math.hypot(width, height)
+    detector = ChangeDetector(options.cut_distance, options.change_ratio)
+    visibility = head.for_fit()
+
+    rows: list[dict] = []
+    estimates: list[SampleEstimate] = []
+    segments: list[tuple[int, str]] = []
+    window: deque[Sample] = deque()
+    last_sample: dict[int, int] = {}
+    segment = -1
+    spent = {"track_s": 0.0, "fit_s": 0.0, "estimate_s": 0.0, "change_s": 0.0}
+    n_frames = 0
+    t_track = time.perf_counter()
+    last_frame = None
+
+    def run_window(tf) -> None:
+        t0 = time.perf_counter()
+        est = _estimate_window(list(window), model, cfg, warm_cfg, estimates, segment, tf, options,
+                               estimate_joint, refit_joint, (JointUnsupported, EstimationError))
+        spent["estimate_s"] += time.perf_counter() - t0
+        if est is not None:
+            estimates.append(est)
+            return
+        for sample in window:
+            if sample.row.get("status") == "ok":
+                sample.row.update(status="no_estimate", message="the window's faces gave no estimate")
+
+    def flush(tf) -> None:
+        if window and not (estimates and estimates[-1].segment == segment):
+            run_window(tf)
+
+    for tf in frames:
+        last_frame = tf
+        spent["track_s"] += time.perf_counter() - t_track
+        n_frames += 1
+        t0 = time.perf_counter()
+        why = detector.update(tf.image, tf.faces)
+        spent["change_s"] += time.perf_counter() - t0
+        if segment < 0 or why is not None:
+            if why is not None:
+                flush(tf)  # the last segment's light, if it waited for more faces and never had them
+                report.note(f"frame {tf.index}: new segment ({why})")
+            segment += 1
+            segments.append((tf.index, why or "start"))
+            window.clear()
+            last_sample.clear()
+        photo = None
+        new = False
+        frame_rows = []
+        for face in tf.faces:
+            row = {"frame": tf.index, "time_s": tf.time_s, "person": face.person, "status": face.status,
+                   "message": face.reason, "segment": segment, "sample": False, "box": list(map(float, face.box)),
+                   "yaw_deg": face.yaw_deg, "pitch_deg": face.pitch_deg}
+            frame_rows.append(row)
+            if face.status != "ok" or face.landmarks is None:
+                continue
+            due = face.person not in last_sample or tf.index - last_sample[face.person] >= options.sample_every
+            if not due:
+                continue
+            t0 = time.perf_counter()
+            if photo is None:
+                photo = Photo(path=f"frame {tf.index}", kind="video", codes=tf.image, focal_px=focal_px,
+                              focal_source="default" if options.focal_35mm_mm == VideoOptions.focal_35mm_mm
+                              else "option", orientation=1, exif={})
+            fitted = fit_face(photo, face.landmarks, face.person, fit_opts, visibility=visibility)
+            spent["fit_s"] += time.perf_counter() - t0
+            last_sample[face.person] = tf.index
+            if not isinstance(fitted, FaceFit):
+                row.update(status=fitted.reason, message=fitted.message)
+                continue
+            obs = FaceObservation(fitted.normals, fitted.observed_rgb, fitted.mask, fitted.visibility_bits, grid,
+                                  f"{tf.index}:{face.person}", fitted.points)
+            window.append(Sample(tf.index, tf.time_s, face.person, obs, fitted.pixel_rc, segment, row=row))
+            row["sample"] = True
+            new = True
+        rows.extend(frame_rows)
+        if new:
+            lit = bool(estimates) and estimates[-1].segment == segment
+            while window and (tf.time_s - window[0].time_s > options.window_s
+                              or len(window) > options.max_window_faces) and (lit or len(window) > options.max_window_faces):
+                window.popleft()
+            # offline: a segment's first light waits for ``cold_faces`` samples (every frame of the
+            # segment then gets it), later ones follow each sample
+            if lit or len(window) >= options.cold_faces:
+                run_window(tf)
+        report.advance()
+        t_track = time.perf_counter()
+    if last_frame is not None:
+        flush(last_frame)
+    _fill_rows(rows, estimates, model)
+    total = time.perf_counter() - t_start
+    timings = {**{k: round(v, 4) for k, v in spent.items()}, "total_s": round(total, 4), "frames": n_frames,
+               "frames_per_s": round(n_frames / total, 3) if total > 0 else None,
+               "estimates": len(estimates), "head_build_s": round(getattr(head, "build_s", 0.0), 4)}
+    return ClipLight(rows=rows, estimates=estimates, segments=segments, fps=fps, width=width, height=height,
+                     timings=timings, param_names=list(model.param_names))
+
+
+def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list[SampleEstimate], segment: int,
+                     tf, options: VideoOptions, estimate_joint, refit_joint, errors) -> SampleEstimate | None:
+    """The light of the window's samples: cold at a segment's start, warm after (module docstring)."""
+    if not window:
+        return None
+    t0 = time.perf_counter()
+    obs = [s.observation for s in window]
+    rc = [s.pixel_rc for s in window]
+    last = estimates[-1] if estimates and estimates[-1].segment == segment else None
+    try:
+        if last is None:
+            joint = estimate_joint(obs, model, cfg, pixel_rc=rc)
+            result, shares = joint.result, joint.faces
+        else:
+            prior = _temporal_prior(model, last, tf.time_s - last.time_s, options)
+            result, shares = refit_joint(obs, model, last.params, warm_cfg, extra_prior=prior, pixel_rc=rc,
+                                         problems=[_problem(s, model, warm_cfg) for s in window])
+    except errors:
+        return None
+    used = [s for s, share in zip(window, shares) if share.used]
+    residual = {(s.frame, s.person): share.data for s, share in zip(window, shares) if share.data is not None}
+    return SampleEstimate(frame=tf.index, time_s=float(np.mean([s.time_s for s in used] or [tf.time_s])),
+                          segment=segment, params=np.asarray(result.params, np.float64),
+                          sun_direction=None if result.sun_direction is None else np.asarray(result.sun_direction),
+                          ground_albedo=result.ground_albedo, window=[s.frame for s in used],
+                          persons=[s.person for s in used], residual=residual, cold=last is None,
+                          runtime_s=time.perf_counter() - t0)
+
+
+def _problem(sample: Sample, model, cfg):
+    """The sample's FaceProblem under ``cfg``, built once (a sample sits in several windows)."""
+    import torch
+
+    from f2l.estimate.problem import FaceProblem
+
+    if sample.problem is None:
+        sample.problem = FaceProblem(sample.observation, model, cfg, torch.float64)
+    return sample.problem
+
+
+def _fill_rows(rows: list[dict], estimates: list[SampleEstimate], model) -> None:
+    """Each row's light: interpolated between its segment's estimates (module docstring, step 4)."""
+    from f2l.lighting.grid import angles_from_direction
+
+    by_segment: dict[int, list[SampleEstimate]] = {}
+    for e in estimates:
+        by_segment.setdefault(e.segment, []).append(e)
+    for row in rows:
+        seg = by_segment.get(row["segment"])
+        row.update(params=None, sun_direction=None, sun_elevation_deg=None, sun_azimuth_deg=None, window=None,
+                   residual=None, ground_albedo=None, estimate_frame=None)
+        if not seg:
+            continue
+        times = np.array([e.time_s for e in seg])
+        k = int(np.searchsorted(times, row["time_s"], side="right"))
+        a, b = seg[max(k - 1, 0)], seg[min(k, len(seg) - 1)]
+        params = interpolate_params(model, a, b, row["time_s"])
+        near = a if abs(row["time_s"] - a.time_s) <= abs(b.time_s - row["time_s"]) else b
+        sun = model.sun_direction(params) if hasattr(model, "sun_direction") else None
+        row.update(params=[float(v) for v in params], window=list(near.window), estimate_frame=near.frame,
+                   ground_albedo=near.ground_albedo, residual=near.residual.get((row["frame"], row["person"])))
+        if sun is not None:
+            el, az = angles_from_direction(np.asarray(sun, np.float64))
+            row.update(sun_direction=[float(v) for v in sun], sun_elevation_deg=math.degrees(float(el)),
+                       sun_azimuth_deg=math.degrees(float(az)))

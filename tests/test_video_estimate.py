@@ -1,0 +1,244 @@
+"""Light from video (f2l.video.head, f2l.video.estimate, f2l video): the head's cached transport
+against ray casting, cuts and light changes, interpolation, and end-to-end recovery on clips of
+f2l's own renderer (a regression check: the independent path-traced clips are `make eval-video`)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from f2l.cli.app import app
+from f2l.face.geometry import NUM_MESH_LANDMARKS
+from f2l.lighting.grid import LatLongGrid, direction_from_angles
+from f2l.synth.render import pose_matrix
+from f2l.transport.visibility import compute_visibility, front_mask, unpack_bits
+from f2l.video.estimate import (SKIN_LANDMARKS, ChangeDetector, SampleEstimate, VideoOptions,
+                                interpolate_params)
+from f2l.video.head import head_transport
+from f2l.video.track import TrackedFace
+
+from tests.video_helpers import focal_35mm, synth_clip
+
+GRID = LatLongGrid(32, 64)
+
+
+@pytest.fixture(scope="module")
+def table():
+    return head_transport(GRID)
+
+
+def _angle_deg(a, b) -> float:
+    return math.degrees(math.acos(float(np.clip(np.dot(a, b), -1.0, 1.0))))
+
+
+# -- the head's transport table -------------------------------------------------------------
+def test_unturned_head_reads_its_table_exactly_as_ray_casting(table):
+    from f2l.face import geometry
+    from f2l.face.mesh import canonical_face_mesh
+
+    canon, tri, _ = canonical_face_mesh()
+    c = np.asarray(canon, np.float64) - np.asarray(canon, np.float64).mean(0)
+    front = np.array([0.0, 0.0, -60.0])
+    v, f, vn = geometry.subdivided_mesh(c + front, tri, 2)
+    pick = np.arange(0, len(v), 7)
+    traced = compute_visibility(v, f, v[pick], vn[pick], GRID)
+    read = table.visibility(v[pick], vn[pick], np.eye(3), front)
+    assert np.array_equal(read, traced)
+
+
+def test_a_head_turned_by_whole_columns_reads_its_table_rolled(table):
+    """A turn about +Y by k texel columns is a roll of the visibility's columns, exactly."""
+    k = 5
+    yaw = 2 * math.pi * k / GRID.width
+    rot = pose_matrix(math.degrees(yaw), 0.0, 0.0)
+    pick = np.arange(0, len(table.vertices), 5)
+    centre = np.array([3.0, -2.0, -70.0])
+    points = table.vertices[pick] @ rot.T + centre
+    normals = table.normals[pick] @ rot.T
+    read = unpack_bits(table.visibility(points, normals, rot, centre), GRID.size).reshape(-1, GRID.height, GRID.width)
+    own = table.visible[pick].reshape(-1, GRID.height, GRID.width)
+    rolled = np.roll(own, -k if _azimuth_shift_sign(rot) < 0 else k, axis=2)
+    front = front_mask(normals, GRID).reshape(read.shape)
+    assert np.array_equal(read, rolled & front)
+
+
+def _azimuth_shift_sign(rot) -> float:
+    d = rot @ np.array([0.0, 0.0, -1.0])
+    return math.atan2(d[0], -d[2])
+
+
+def test_a_posed_head_reads_its_table_within_a_texel_of_ray_casting(table):
+    """Any pose: the table's visibility agrees with rays cast on the posed mesh (the lookups move
+    a shadow edge by at most about a texel): ≥ 97% of the bits, uniform-sky shading within 2%."""
+    from f2l.face import geometry
+    from f2l.transport.visibility import front_cosines
+
+    rot = pose_matrix(28.0, -12.0, 6.0)
+    centre = np.array([-4.0, 3.0, -65.0])
+    v_cam = table.vertices @ rot.T + centre
+    from f2l.face.mesh import canonical_face_mesh
+
+    _, tri, _ = canonical_face_mesh()
+    v, f, vn = geometry.subdivided_mesh(v_cam[:NUM_MESH_LANDMARKS], tri, 2)
+    pick = np.arange(0, len(v), 9)
+    traced = unpack_bits(compute_visibility(v, f, v[pick], vn[pick], GRID), GRID.size).astype(bool)
+    read = unpack_bits(table.visibility(v[pick], vn[pick], rot, centre), GRID.size).astype(bool)
+    assert (traced == read).mean() >= 0.97
+    cos = front_cosines(vn[pick], GRID).reshape(len(pick), -1) * GRID.solid_angles_flat[None]
+    e_traced, e_read = (traced * cos).sum(1), (read * cos).sum(1)
+    assert np.median(np.abs(e_read - e_traced) / e_traced) < 0.02
+
+
+# -- changes ------------------------------------------------------------------------------------
+def _face(person, box, level, status="ok"):
+    x0, y0, x1, y1 = box
+    lm = np.zeros((478, 3))
+    lm[:, 0], lm[:, 1] = (x0 + x1) / 2, (y0 + y1) / 2
+    rng = np.random.default_rng(person)
+    lm[list(SKIN_LANDMARKS), 0] = rng.uniform(x0 + 5, x1 - 5, len(SKIN_LANDMARKS))
+    lm[list(SKIN_LANDMARKS), 1] = rng.uniform(y0 + 5, y1 - 5, len(SKIN_LANDMARKS))
+    return TrackedFace(0, 0.0, person, lm if status == "ok" else None, 1.0, box, 0.0, 0.0, status, "")
+
+
+def _frame(backdrop, box, level):
+    img = np.empty((180, 320, 3), np.uint8)
+    img[:] = backdrop
+    x0, y0, x1, y1 = box
+    img[y0:y1, x0:x1] = level
+    return img
+
+
+def test_a_new_shot_is_a_cut_and_a_face_that_moves_or_is_covered_is_not():
+    det = ChangeDetector(cut_distance=0.5, change_ratio=1.5)
+    box, moved = (100, 40, 160, 110), (130, 50, 190, 120)
+    assert det.update(_frame((70, 90, 120), box, 180), [_face(0, box, 180)]) is None
+    for _ in range(3):
+        assert det.update(_frame((70, 90, 120), box, 180), [_face(0, box, 180)]) is None
+    assert det.update(_frame((70, 90, 120), moved, 180), [_face(0, moved, 180)]) is None  # the face moved
+    assert det.update(_frame((70, 90, 120), moved, 128), [_face(0, moved, 128, "covered")]) is None
+    why = det.update(_frame((40, 140, 60), moved, 180), [_face(0, moved, 180)])
+    assert why is not None and why.startswith("cut")
+
+
+def test_a_sudden_change_of_the_light_on_a_face_starts_a_segment_and_a_small_one_does_not():
+    det = ChangeDetector(cut_distance=0.5, change_ratio=1.5)
+    box = (100, 40, 160, 110)
+    for _ in range(4):
+        assert det.update(_frame((70, 90, 120), box, 200), [_face(0, box, 200)]) is None
+    assert det.update(_frame((70, 90, 120), box, 190), [_face(0, box, 190)]) is None  # ~10% darker
+    why = det.update(_frame((70, 90, 120), box, 110), [_face(0, box, 110)])  # a cloud: ~3.5x darker
+    assert why is not None and why.startswith("light")
+    assert det.update(_frame((70, 90, 120), box, 110), [_face(0, box, 110)]) is None  # the new light holds
+
+
+# -- interpolation ----------------------------------------------------------------------------
+def test_the_light_between_two_estimates_moves_the_sun_along_the_great_circle():
+    from f2l.estimate.record import _get_model
+
+    model = _get_model("sunsky", GRID)
+    lay = model.sun_angles
+
+    def est(time_s, el_deg, az_deg, w):
+        p = np.asarray(model.initial_points(), np.float64)[0].copy()
+        p[lay.elevation], p[lay.azimuth] = math.radians(el_deg), math.radians(az_deg)
+        p[list(model.sun_layout.sky_rgb)] = w
+        return SampleEstimate(0, time_s, 0, p, direction_from_angles(math.radians(el_deg), math.radians(az_deg)),
+                              0.2, [], [], {}, False, 0.0)
+
+    a, b = est(1.0, 0.0, 0.0, 1.0), est(3.0, 0.0, 90.0, 3.0)
+    mid = interpolate_params(model, a, b, 2.0)
+    assert math.degrees(mid[lay.azimuth]) == pytest.approx(45.0, abs=1e-9)
+    assert mid[lay.elevation] == pytest.approx(0.0, abs=1e-12)
+    assert mid[model.sun_layout.sky_rgb[0]] == pytest.approx(2.0)
+    assert np.array_equal(interpolate_params(model, a, b, 0.0), interpolate_params(model, a, b, 1.0))
+    assert interpolate_params(model, a, b, 9.0)[lay.azimuth] == pytest.approx(math.pi / 2)
+
+
+# -- end to end -------------------------------------------------------------------------------
+SUNS = [(35.0, 60.0), (20.0, -80.0)]
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("clip")
+    path = folder / "two_shots.mp4"
+    truth = synth_clip(path, SUNS, renders=4, hold=3, yaw_range_deg=15.0)
+    return path, truth
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("F2L_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "f2l-cache"))
+
+
+def _run(clip_path: Path, out: Path, *extra):
+    return CliRunner().invoke(app, ["video", str(clip_path), "-m", "sunsky", "--out", str(out), "--every", "4",
+                                    "--sample-every", "3", "--focal-35mm", f"{focal_35mm(160):.4f}", *extra])
+
+
+def test_a_clip_gives_a_light_per_frame_that_finds_each_shots_sun(clip, tmp_path):
+    path, truth = clip
+    res = _run(path, tmp_path / "out", "--json")
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.output)
+    assert [s["first_frame"] for s in summary["segments"]] == [0, 12]
+    assert summary["segments"][1]["why"].startswith("cut")
+    rows = pq.read_table(tmp_path / "out" / "frames.parquet").to_pylist()
+    assert [r["frame"] for r in rows] == list(range(24))
+    for r in rows:
+        assert r["status"] == "ok" and r["segment"] == truth[r["frame"]]["segment"]
+        assert _angle_deg(r["sun_direction"], truth[r["frame"]]["sun"]) < 15.0, r
+        assert all(w // 12 == r["frame"] // 12 for w in r["window"])  # no frame lit from another shot
+    sun = np.array([r["sun_direction"] for r in rows])
+    steps = [_angle_deg(sun[i], sun[i + 1]) for i in range(23) if i != 11]
+    assert max(steps) < 5.0
+    probes = sorted((tmp_path / "out" / "probes" / "sunsky").glob("*.exr"))
+    assert [p.name for p in probes] == [f"frame-{i:06d}.exr" for i in range(0, 24, 4)]
+    from f2l.io.probe_io import read_hdr_image
+
+    probe = read_hdr_image(probes[0])
+    assert probe.shape == (64, 128, 3) and np.isfinite(probe).all()
+    cap = cv2.VideoCapture(str(tmp_path / "out" / "preview.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 24
+    cap.release()
+    assert (tmp_path / "out" / "sun_track.png").stat().st_size > 0
+
+
+def test_frames_where_the_face_is_covered_carry_a_status_and_the_rest_keep_their_light(clip, tmp_path):
+    path, truth = clip
+    covered = tmp_path / "covered.mp4"
+    cap = cv2.VideoCapture(str(path))
+    writer = cv2.VideoWriter(str(covered), cv2.VideoWriter_fourcc(*"mp4v"), 24.0, (160, 160))
+    for i in range(24):
+        ok, bgr = cap.read()
+        assert ok
+        if i in (4, 5, 6):
+            bgr[40:130, 35:125] = 128  # a grey card over the face
+        writer.write(bgr)
+    writer.release()
+    cap.release()
+    res = _run(covered, tmp_path / "out", "--json", "--no-preview")
+    assert res.exit_code == 0, res.output
+    assert [s["first_frame"] for s in json.loads(res.output)["segments"]] == [0, 12]
+    rows = {r["frame"]: r for r in pq.read_table(tmp_path / "out" / "frames.parquet").to_pylist()}
+    for i, r in rows.items():
+        if i in (4, 5, 6):
+            assert r["status"] in ("covered", "lost") and not r["sample"]
+        else:
+            assert r["status"] == "ok"
+        assert _angle_deg(r["sun_direction"], truth[i]["sun"]) < 15.0
+
+
+def test_a_file_that_is_not_a_video_fails_with_its_name(tmp_path):
+    bad = tmp_path / "notes.mp4"
+    bad.write_text("not a video")
+    res = _run(bad, tmp_path / "out")
+    assert res.exit_code == 1
+    assert "notes.mp4" in res.output
