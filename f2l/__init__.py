@@ -52,6 +52,10 @@ def __dir__() -> list[str]:
 
 
 def _at_exit() -> None:
+    import sys
+
+    if "colour.io.image" not in sys.modules:  # nothing to release: skip importing probe_io (numpy)
+        return
     from f2l.io.probe_io import release_openimageio_references
 
     release_openimageio_references()

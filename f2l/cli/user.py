@@ -100,10 +100,8 @@ def estimate(
 
     A record that cannot be read or estimated is a row with its status and reason; the others are
     written. Exit code 4 when some failed, 1 when none succeeded."""
-    from f2l.pipeline.photos import fit_photos, is_photo_input
+    from f2l.pipeline.photos import is_photo_input
 
-    config_settings = estimate_settings(set_, max_iter=max_iter, max_pixels=max_pixels, sun_prior_from_capture=sun_prior,
-                                        skin_gloss=skin_gloss, skin_reflection=skin_reflection)
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
         _fail(f"no such photo or shard path: {', '.join(missing)}")
@@ -112,16 +110,25 @@ def estimate(
     if joint not in ("photo", "session", "none"):
         raise typer.BadParameter("must be photo, session or none", param_hint="--joint")
     photos = [s for s in shards if is_photo_input(s)]
-    fitted = None
-    if photos:
-        from f2l.face.landmarker import LandmarkerError
-        from f2l.face.mesh import FaceMeshError
+    fitting = _start_fit(photos, out, min_face_px, not json_out) if photos else None
+    try:  # while the photos' faces are fitted (a forked child), torch and the estimator load here
+        config_settings = estimate_settings(set_, max_iter=max_iter, max_pixels=max_pixels, sun_prior_from_capture=sun_prior,
+                                            skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+        fitted = None
+        if fitting is not None:
+            from f2l.face.landmarker import LandmarkerError
+            from f2l.face.mesh import FaceMeshError
 
-        try:
-            with progress_bars(not json_out) as progress:
-                fitted = fit_photos(photos, out, min_face_px=min_face_px, progress=progress)
-        except (LandmarkerError, FaceMeshError) as exc:
-            _fail(str(exc))
+            if fitting.forked:
+                _preload_estimate(model)
+            try:
+                fitted = fitting.result()
+            except (LandmarkerError, FaceMeshError) as exc:
+                _fail(str(exc))
+    finally:
+        if fitting is not None:
+            fitting.cancel()  # only a child still running: a usage error above
+    if fitted is not None:
         shards = [s for s in shards if not is_photo_input(s)] + fitted["shards"]
         if not shards:
             reasons = "; ".join(r["message"] for r in fitted["photos"][:5])
@@ -149,6 +156,44 @@ def estimate(
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
     photo_errors = 0 if fitted is None else sum(r["status"] == "error" for r in fitted["photos"])
     exit_for(summary["failed"] + photo_errors, summary["ok"] + summary["skipped_done"])
+
+
+def _start_fit(photos: list[Path], out: Path, min_face_px: float | None, bars: bool):
+    """Fit the photos' faces (:func:`f2l.pipeline.photos.fit_photos`) in a forked child where
+    :mod:`f2l.io.forked` can, else here; returns its :class:`~f2l.io.forked.Forked`. The child
+    hides pandas (:mod:`f2l.io.pyarrow_pandas`): pyarrow would import it for nothing."""
+    from f2l.io import forked
+    from f2l.io.pyarrow_pandas import hide_pandas
+    from f2l.pipeline.photos import fit_photos
+
+    def fit() -> dict:
+        with progress_bars(bars) as progress:
+            return fit_photos(photos, out, min_face_px=min_face_px, progress=progress)
+
+    return forked.start(fit, child_setup=hide_pandas)
+
+
+ESTIMATE_MODULES = ("pandas", "pyarrow.parquet", "f2l.estimate.runner", "f2l.estimate.record",
+                    "f2l.estimate.group_record", "f2l.estimate.resume", "f2l.estimate.model_prior",
+                    "f2l.io.shards", "f2l.io.tables", "f2l.io.exr", "f2l.io.capture", "f2l.io.preview")
+"""What ``f2l estimate`` imports to estimate, loaded while a forked child fits the photos."""
+
+
+def _preload_estimate(models: list[str]) -> None:
+    """Import what the estimate needs (:data:`ESTIMATE_MODULES`, the models' classes) ahead of it:
+    the same modules it would import, only earlier. A model that fails to load is reported by
+    the estimate itself."""
+    import importlib
+
+    from f2l.models.registry import ModelNotFoundError, model_class
+
+    for name in ESTIMATE_MODULES:
+        importlib.import_module(name)
+    for name in models:
+        try:
+            model_class(name)
+        except ModelNotFoundError:
+            pass
 
 
 def evaluate(
