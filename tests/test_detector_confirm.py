@@ -51,6 +51,7 @@ def test_a_dim_face_under_the_threshold_is_a_candidate_and_is_confirmed(landmark
     assert len(faces) == 2
     assert iou(clear, faces[0].detection.box[None])[0] > 0.5  # the detection first, as before
     assert iou(dim, faces[1].detection.box[None])[0] > 0.3
+    assert faces[0].support is None and SUPPORT_WEAK <= faces[1].support < SUPPORT_STRONG
     # the landmarks lie on the dim face: their box overlaps its true box
     pts = faces[1].points[:, :2]
     assert iou(dim, np.concatenate([pts.min(0), pts.max(0)])[None])[0] > 0.4
@@ -93,3 +94,23 @@ def test_support_is_high_on_a_face_and_nil_off_it(landmarker, dim_and_clear):
     assert 0.75 * len(SUPPORT_WINDOWS) <= tiled.support(canvas, det) <= len(SUPPORT_WINDOWS)
     bare = Detection(box=np.array([20.0, 380.0, 70.0, 430.0]), keypoints=np.zeros((6, 2)), score=0.5)
     assert tiled.support(canvas, bare) == 0.0
+
+
+def test_a_doubted_detection_needs_one_crop_a_candidate_two(landmarker, dim_and_clear):
+    """With strong support a detection (score >= the threshold) is kept on its first crop at
+    min_presence; the same hit scored as a candidate needs two crops at CONFIRM_PRESENCE."""
+    import dataclasses
+
+    from f2l.face.landmarker import CONFIRM_CROPS, CONFIRM_PRESENCE, SUPPORT_STRONG
+
+    canvas, _, clear = dim_and_clear
+    (det,) = [d for d in landmarker.tiled(canvas) if iou(clear, d.box[None])[0] > 0.5]
+    assert landmarker.tiled.support(canvas, det) >= SUPPORT_STRONG
+    presences = [landmarker._crop_landmarks(canvas, det, *crop)[1] for crop in CONFIRM_CROPS[:3]]
+    assert presences[0] >= landmarker.min_presence and presences[1] >= CONFIRM_PRESENCE
+    first = landmarker._crop_landmarks(canvas, det, *CONFIRM_CROPS[0])[0]
+    np.testing.assert_array_equal(landmarker.confirmed(canvas, det).points, first)
+    candidate = dataclasses.replace(det, score=0.5)
+    np.testing.assert_array_equal(landmarker.confirmed(canvas, candidate).points, first)
+    bare = dataclasses.replace(det, box=np.array([20.0, 380.0, 70.0, 430.0]))
+    assert landmarker.confirmed(canvas, bare) is None  # no support off the face

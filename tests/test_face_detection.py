@@ -206,3 +206,4 @@ def test_bench_detect_runs_the_real_code_small():
     assert t["windows"] >= 1 and t["detect_s"] > 0 and t["faces"] == t["true_faces"] >= 3
     table = format_table(r)
     assert "| all |" in table and "face-free photos" in table
+    assert r["negative_confirmed"] == 0 and "kept by confirmation" in table

@@ -61,13 +61,14 @@ ROI_SCALE = 1.5
 # crops tried, in order, while the presence stays under min_presence: (centre, box scale); "nose"
 # centres the crop on the detector's nose keypoint, which suits a turned face better than its box
 ROI_CROPS = (("box", ROI_SCALE), ("nose", 1.5), ("nose", 1.8), ("box", 1.8))
-# A detection whose presence stays under min_presence on ROI_CROPS, or a candidate (a hit scoring
-# under the detector's threshold), is kept when the detector's support for it (0-6, the sum of its
-# scores in 6 windows around it; f2l.face.detector.TiledDetector.support) reaches SUPPORT_STRONG and
-# one of CONFIRM_CROPS reaches min_presence, or reaches SUPPORT_WEAK and two crops reach
-# CONFIRM_PRESENCE. Measured on path-traced groups (seed 0) and 200 face-free photos: true faces
-# doubted by the landmark model have support 4.2-4.7, face-like textures at most 3.1; true faces
-# under the detector's threshold 2.4-3.9, and every texture with two crops at 0.99 at most 1.7.
+# A detection whose presence stays under min_presence on ROI_CROPS (doubted), or a candidate (a hit
+# scoring under the detector's threshold), is kept when the detector's support for it (0-6, the sum
+# of its scores in 6 windows around it; f2l.face.detector.TiledDetector.support) reaches SUPPORT_WEAK
+# and two of CONFIRM_CROPS reach CONFIRM_PRESENCE; a doubted detection also when its support reaches
+# SUPPORT_STRONG and one crop reaches min_presence. Measured on path-traced groups (seed 0) and 200
+# face-free photos: true faces doubted by the landmark model have support 4.2-4.7, face-like
+# textures doubted at most 2.9; true candidates 2.4-3.9 with 2-24 crops at 0.99, textures with two
+# such crops at most 1.7 (a rocket's gantry: 3.7 with one crop at 0.998, so one crop is not enough).
 SUPPORT_STRONG = 3.5
 SUPPORT_WEAK = 2.0
 CONFIRM_PRESENCE = 0.99
@@ -88,12 +89,14 @@ class FaceLandmarks:
     """478 landmarks (478, 3) in photo pixels (z in the same scale, smaller = nearer).
 
     ``presence`` is the landmark model's face-presence probability on the final crop,
-    ``detection`` the detector hit it started from.
+    ``detection`` the detector hit it started from, ``support`` the detector's support (0-6) where
+    the face had to be confirmed (:meth:`FaceLandmarker.confirmed`), else None.
     """
 
     points: np.ndarray
     presence: float
     detection: Detection
+    support: float | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,21 +221,24 @@ class FaceLandmarker:
 
     def confirmed(self, image: np.ndarray, detection: Detection) -> FaceLandmarks | None:
         """The landmarks of a doubted detection or a candidate if they are confirmed (the detector's
-        support and the presence on ``CONFIRM_CROPS``, see ``SUPPORT_STRONG``), else None."""
+        support and the presence on ``CONFIRM_CROPS``, see ``SUPPORT_STRONG``), else None: the first
+        crop at ``min_presence`` for a detection with strong support, else the first of two crops at
+        ``CONFIRM_PRESENCE``."""
         image = _check_image(image)
         support = self.tiled.support(image, detection)
         if support < SUPPORT_WEAK:
             return None
         sure = max(CONFIRM_PRESENCE, self.min_presence)
+        strong = detection.score >= self.min_score and support >= SUPPORT_STRONG
         first = None
         for crop in CONFIRM_CROPS:
             points, presence = self._crop_landmarks(image, detection, *crop)
-            if support >= SUPPORT_STRONG and presence >= self.min_presence:
-                return FaceLandmarks(points=points, presence=presence, detection=detection)
+            if strong and presence >= self.min_presence:
+                return FaceLandmarks(points=points, presence=presence, detection=detection, support=support)
             if presence >= sure:
                 if first is not None:
                     return first
-                first = FaceLandmarks(points=points, presence=presence, detection=detection)
+                first = FaceLandmarks(points=points, presence=presence, detection=detection, support=support)
         return None
 
     def _crop_landmarks(self, image: np.ndarray, detection: Detection, centre: str, scale: float,
