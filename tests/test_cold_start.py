@@ -1,6 +1,6 @@
 """The cold start of ``f2l`` (docs/experiments/cold_start.md): what a fresh process imports, the
 forked face fit of ``f2l estimate photo.jpg`` (f2l.io.forked), pyarrow without pandas in it
-(f2l.io.pyarrow_pandas), and the skin mask's point-in-polygon without matplotlib."""
+(f2l.io.hidden_modules), and the skin mask's point-in-polygon without matplotlib."""
 
 from __future__ import annotations
 
@@ -83,8 +83,8 @@ def test_pyarrow_with_pandas_hidden_converts_to_the_same_parquet_bytes():
     code = (
         "import sys, json, io\n"
         "import numpy as np, pyarrow as pa, pyarrow.parquet as pq\n"
-        "from f2l.io.pyarrow_pandas import hide_pandas\n"
-        "hidden = hide_pandas()\n"
+        "from f2l.io.hidden_modules import hide\n"
+        "hidden = hide() == ('pandas', 'networkx')\n"
         "arrays = [pa.array([1.5, None, float('nan')]), pa.array([[1.0, 2.0], [], None]),"
         " pa.array(['a', None, 'c']), pa.array(np.arange(3.0))]\n"
         "t = pa.Table.from_arrays(arrays, names=['x', 'l', 's', 'n'])\n"
@@ -96,9 +96,32 @@ def test_pyarrow_with_pandas_hidden_converts_to_the_same_parquet_bytes():
         " back.to_pylist()[2]['s'], str(lengths.tolist())]))")
     hidden, loaded, refused, with_hidden, last, lengths = json.loads(_fresh_python(code))
     assert hidden and not loaded and refused and last == "c" and lengths == "[2.0, 0.0, nan]"
-    plain = json.loads(_fresh_python(code.replace("hidden = hide_pandas()", "hidden = True")))
+    plain = json.loads(_fresh_python(code.replace("hidden = hide() == ('pandas', 'networkx')", "hidden = True")))
     assert plain[1] and not plain[2]  # without the hiding, pyarrow imports pandas on the way
     assert with_hidden == plain[3]  # the same Parquet bytes either way
+
+
+def test_the_fits_mesh_and_normals_are_the_same_with_networkx_hidden():
+    import hashlib
+
+    from f2l.face.geometry import subdivided_mesh
+    from f2l.face.mesh import canonical_face_mesh
+
+    code = (
+        "import sys, hashlib, json\n"
+        "from f2l.io.hidden_modules import hide\n"
+        "hide()\n"
+        "from f2l.face.geometry import subdivided_mesh\n"
+        "from f2l.face.mesh import canonical_face_mesh\n"
+        "v, f, _ = canonical_face_mesh()\n"
+        "out = subdivided_mesh(v * [1.0, 1.0, -1.0] + [0.0, 0.0, -40.0], f, 2)\n"
+        "print(json.dumps([[hashlib.sha256(a.tobytes()).hexdigest() for a in out], 'networkx' in sys.modules,"
+        " 'trimesh' in sys.modules]))")
+    digests, networkx_loaded, trimesh_loaded = json.loads(_fresh_python(code))
+    assert trimesh_loaded and not networkx_loaded
+    v, f, _ = canonical_face_mesh()
+    here = subdivided_mesh(v * [1.0, 1.0, -1.0] + [0.0, 0.0, -40.0], f, 2)
+    assert len(here[0]) > 7000 and digests == [hashlib.sha256(a.tobytes()).hexdigest() for a in here]
 
 
 def test_point_in_polygon_equals_matplotlibs_on_edges_vertices_and_centres():

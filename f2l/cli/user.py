@@ -161,16 +161,16 @@ def estimate(
 def _start_fit(photos: list[Path], out: Path, min_face_px: float | None, bars: bool):
     """Fit the photos' faces (:func:`f2l.pipeline.photos.fit_photos`) in a forked child where
     :mod:`f2l.io.forked` can, else here; returns its :class:`~f2l.io.forked.Forked`. The child
-    hides pandas (:mod:`f2l.io.pyarrow_pandas`): pyarrow would import it for nothing."""
-    from f2l.io import forked
-    from f2l.io.pyarrow_pandas import hide_pandas
+    hides pandas and networkx, which pyarrow and trimesh would import for nothing
+    (:mod:`f2l.io.hidden_modules`)."""
+    from f2l.io import forked, hidden_modules
     from f2l.pipeline.photos import fit_photos
 
     def fit() -> dict:
         with progress_bars(bars) as progress:
             return fit_photos(photos, out, min_face_px=min_face_px, progress=progress)
 
-    return forked.start(fit, child_setup=hide_pandas)
+    return forked.start(fit, child_setup=hidden_modules.hide)
 
 
 ESTIMATE_MODULES = ("pandas", "pyarrow.parquet", "f2l.estimate.runner", "f2l.estimate.record",

@@ -108,7 +108,7 @@ def _portable(exc: BaseException) -> BaseException:
 def start(fn: Callable[[], Any], *, child_setup: Callable[[], Any] | None = None) -> Forked:
     """Run ``fn()`` in a forked child (or here, where :func:`can_fork` says no) and return its
     :class:`Forked`; ``fn``'s result must pickle. ``child_setup()`` runs first in a child only
-    (e.g. :func:`f2l.io.pyarrow_pandas.hide_pandas`). Standard output and error are flushed first
+    (e.g. :func:`f2l.io.hidden_modules.hide`). Standard output and error are flushed first
     so that nothing buffered is written twice."""
     if not can_fork():
         try:
