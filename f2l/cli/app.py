@@ -79,7 +79,7 @@ GROUPS = {
         "real": evaluation.eval_real_cmd, "ablations": evaluation.eval_real_ablations_cmd,
         "geometry": evaluation.eval_real_geometry_cmd, "search": evaluation.eval_real_search_cmd,
         "framings": evaluation.eval_framings_cmd, "groups": evaluation.eval_groups_cmd,
-        "sessions": evaluation.eval_sessions_cmd,
+        "sessions": evaluation.eval_sessions_cmd, "video": video.eval_video_cmd,
         "shade": evaluation.eval_shade_cmd, "render-faces": evaluation.render_faces_cmd,
         "render-skies": evaluation.render_skies_cmd, "twin-geometry": evaluation.twin_geometry_cmd,
         "compare-geometry": face.compare_geometry_cmd, "synth": research.synth,

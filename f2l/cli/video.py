@@ -18,7 +18,7 @@ def video_cmd(
     every: int = typer.Option(1, "--every", min=0, help="Write a probe EXR every N frames (0: none; the table has every frame)."),
     preview: bool = typer.Option(True, "--preview/--no-preview", help="Write preview.mp4: the clip beside its probe and the sun's track."),
     sample_every: int = typer.Option(8, "--sample-every", min=1, help="Fit a face every N frames (each sample joins the light's window)."),
-    window_s: float = typer.Option(1.0, "--window-s", min=0.05, help="Samples of the last so many seconds share one light."),
+    window_s: float = typer.Option(4.0, "--window-s", min=0.05, help="Samples of the last so many seconds share one light."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
     focal_35mm_mm: float = typer.Option(50.0, "--focal-35mm", min=5.0, help="The camera's 35 mm-equivalent focal length (clips rarely record it)."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", min=8.0, help="The smallest face to follow, in px."),
@@ -56,3 +56,28 @@ def video_cmd(
                + (", preview.mp4" if summary.get("preview") else ""))
     if not summary["estimates"]:
         fail("no usable face in the clip: no light estimated (see frames.parquet's status column)", code=1)
+
+
+def eval_video_cmd(
+    render_dirs: list[Path] = typer.Argument(..., help="`f2l eval render-faces --sequence` folders."),
+    out: Path = typer.Option(..., "--out", help="Output folder: video.md, video.json, runs/<clip>/."),
+    model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
+    alone_every: int = typer.Option(4, "--alone-every", min=1, help="Estimate every Nth frame alone, as a photo, to compare."),
+    metrics_every: int = typer.Option(8, "--metrics-every", min=1, help="The §5.1 metrics every Nth frame."),
+    sample_every: int = typer.Option(8, "--sample-every", min=1, help="f2l video's --sample-every."),
+    window_s: float = typer.Option(4.0, "--window-s", min=0.05, help="f2l video's --window-s."),
+    json_out: JsonOut = False,
+) -> None:
+    """Light from clips against the truth and against each frame alone: Sun-ang, jitter, settling, §5.1, frames/s."""
+    from f2l.cli.progress import progress_bars
+    from f2l.evaluation.video import eval_video
+    from f2l.video.estimate import VideoOptions
+
+    options = VideoOptions(model=model, sample_every=sample_every, window_s=window_s)
+    with progress_bars(not json_out) as progress:
+        rows = eval_video(render_dirs, out, options, alone_every=alone_every, metrics_every=metrics_every,
+                          progress=progress)
+    if json_out:
+        typer.echo(json.dumps(rows))
+        return
+    typer.echo((out / "video.md").read_text())

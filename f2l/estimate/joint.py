@@ -85,6 +85,7 @@ class JointProblem:
         self.last_data = None
         self.extra_prior = None  # optional params (B, P) -> (B,) added once (a video's temporal prior)
         self.share_parts = False  # evaluate the light's parts once for all faces (objective)
+        self.albedo_group = None  # (K,) ints: faces sharing one skin albedo (_fit), or None
         if self.num_gains:
             self.intensity = intensity_mask(self.model)
 
@@ -154,12 +155,14 @@ def intensity_mask(model: LightingModel) -> np.ndarray:
 
 def estimate_joint(observations: list[FaceObservation], model: LightingModel, config: EstimatorConfig | None = None,
                    exposure_group: list[int] | None = None, pixel_rc: list | None = None,
-                   disagree_ratio: float | None = DISAGREE_RATIO) -> JointResult:
+                   disagree_ratio: float | None = DISAGREE_RATIO, albedo_group: list[int] | None = None) -> JointResult:
     """One light for ``observations`` (module docstring).
 
     ``exposure_group`` (K,) ints: faces with the same number were taken with the same exposure
     (one photo); None: all one photo. ``pixel_rc``: each face's pixel positions, for its noise.
-    ``disagree_ratio`` None keeps every face. Raises EstimationError when no face can be used."""
+    ``disagree_ratio`` None keeps every face. ``albedo_group`` (K,) ints: faces with the same
+    number share one skin albedo (one person in several frames); None: each face its own (not for
+    latent-sky models). Raises EstimationError when no face can be used."""
     t_start = time.perf_counter()
     cfg = config or EstimatorConfig()
     K = len(observations)
@@ -199,7 +202,8 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         active = [i for i in active if support[i] <= disagree_ratio]
     while True:
         result, fit = _fit_group([observations[i] for i in active], [problems.get(i) for i in active], model, cfg,
-                                 [noise[i] for i in active], groups[active])
+                                 [noise[i] for i in active], groups[active],
+                                 None if albedo_group is None else [albedo_group[i] for i in active])
         agreement = _agreements(problems, fit, cfg) if fit is not None else {}
         seen_agreement.update(agreement)
         if disagree_ratio is None or fit is None:
@@ -256,26 +260,29 @@ class _Fit:
     index: list[int]
 
 
-def _fit_group(observations, problems, model, cfg: EstimatorConfig, noise, groups) -> tuple[EstimateResult, _Fit | None]:
+def _fit_group(observations, problems, model, cfg: EstimatorConfig, noise, groups,
+               albedo_group=None) -> tuple[EstimateResult, _Fit | None]:
     """The joint fit of one set of faces; a set of one is the single-face estimate (bit for bit)."""
     if len(observations) == 1:
         return estimate(observations[0], model, cfg), None
     t_start = time.perf_counter()
     weights = face_weights(observations, cfg, noise)
     jp = JointProblem(problems, weights, _renumber(groups))
+    jp.albedo_group = None if albedo_group is None else _renumber(albedo_group)
     return _fit(jp, model, cfg, t_start, [o.face_id for o in observations])
 
 
 def refit_joint(observations: list[FaceObservation], model: LightingModel, start: np.ndarray,
                 config: EstimatorConfig | None = None, *, extra_prior=None,
                 exposure_group: list[int] | None = None, pixel_rc: list | None = None,
-                problems: list | None = None) -> tuple[EstimateResult, list[FaceShare]]:
+                problems: list | None = None, albedo_group: list[int] | None = None) -> tuple[EstimateResult, list[FaceShare]]:
     """One light for ``observations`` fitted from ``start`` (the model's parameters, e.g. the last
     window's light): no sun search, no disagreement tests, ``config.max_iter`` L-BFGS iterations
     (the elevation profile runs only if ``config.sun_elevation_profile_deg`` is set).
     ``extra_prior`` (params (B, P) tensor -> (B,)) is added to the objective once. Not for
     latent-sky models (raises :class:`JointUnsupported`). ``problems``: the faces' FaceProblems
     built before with this model and config (a clip's windows share faces); None builds them.
+    ``albedo_group`` as :func:`estimate_joint`'s.
     Returns the result and each face's share."""
     t_start = time.perf_counter()
     cfg = config or EstimatorConfig()
@@ -296,6 +303,7 @@ def refit_joint(observations: list[FaceObservation], model: LightingModel, start
     jp = JointProblem(problems, weights, _renumber(exposure_group if exposure_group is not None else [0] * K))
     jp.extra_prior = extra_prior
     jp.share_parts = True
+    jp.albedo_group = None if albedo_group is None else _renumber(albedo_group)
     result, fit = _fit(jp, model, cfg, t_start, [o.face_id for o in observations], start=start)
     shares = [FaceShare(face_id=o.face_id, weight=fit.weights[i], albedo=fit.albedo[i], ground_albedo=fit.ground[i],
                         gain=fit.gain[i], data=fit.data[i]) for i, o in enumerate(observations)]
@@ -337,7 +345,9 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     rho0 = np.clip(rho_start, 1e-3, 1 - 1e-3)
     g0 = np.clip(cfg.ground_albedo_init, 1e-3, 1 - 1e-3)
     x_theta = torch.tensor(box.to_unconstrained(theta0), dtype=dtype)
-    x_rho = torch.tensor(np.broadcast_to(np.log(rho0) - np.log1p(-rho0), (B, K, 3)).copy(), dtype=dtype)
+    tied = None if jp.albedo_group is None else torch.as_tensor(jp.albedo_group)
+    n_rho = K if tied is None else int(tied.max()) + 1
+    x_rho = torch.tensor(np.broadcast_to(np.log(rho0) - np.log1p(-rho0), (B, n_rho, 3)).copy(), dtype=dtype)
     log_gain0 = np.zeros(jp.num_gains)  # the search's per-face scales start the gains worse (module docstring)
     x_side = torch.tensor(np.concatenate([np.full((B, K), np.log(g0) - np.log1p(-g0)),
                                           np.broadcast_to(log_gain0, (B, jp.num_gains))], 1), dtype=dtype)
@@ -346,6 +356,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     def unpack(x_theta, x_side, x_rho):
         params = box.to_params(x_theta)
         rho = torch.sigmoid(x_rho) if fixed_rho is None else fixed_rho.expand(len(x_theta), K, 3)
+        if tied is not None and fixed_rho is None:
+            rho = rho[:, tied]
         if weight_idx is not None:  # psi = the faces' mean apparent albedo x weight
             seen = jp.first.apparent(rho).mean(1).repeat(1, 2)
             params = params.index_copy(1, torch.as_tensor(weight_idx), params[:, weight_idx] / seen)

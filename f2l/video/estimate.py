@@ -55,9 +55,11 @@ class VideoOptions:
 
     model: str = "sunsky"
     sample_every: int = 8  # frames between a face's samples
-    window_s: float = 1.0  # samples of the last so many seconds share one light
-    max_window_faces: int = 4
-    cold_faces: int = 3  # a segment's first light waits for this many samples (or the segment's end)
+    window_s: float = 4.0  # samples of the last so many seconds share one light
+    max_window_faces: int = 6
+    cold_faces: int = 6  # a segment's first light waits for this many samples, or
+    cold_span_s: float = 2.0  # for samples this far apart (or the segment's end)
+    tie_albedo: bool = True  # one skin albedo per person across its samples
     resolution: int = 64  # working px of a sampled face (a photo's: 104)
     warm_iters: int = 12
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
@@ -68,6 +70,7 @@ class VideoOptions:
     min_face_px: float = 40.0
     keyframe_every: int = 30
     focal_35mm_mm: float = 50.0  # the camera's 35 mm-equivalent focal length (clips rarely say)
+    focal_px: float | None = None  # the focal length in px, where known (overrides focal_35mm_mm)
 
     def __post_init__(self) -> None:
         if min(self.sample_every, self.max_window_faces, self.warm_iters, self.cold_faces) < 1:
@@ -86,6 +89,8 @@ class Sample:
     observation: object
     pixel_rc: np.ndarray
     segment: int
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
     problem: object = None  # its FaceProblem for warm refits (built on first use)
     row: dict = field(default_factory=dict)  # its frame's row in the table
 
@@ -307,7 +312,7 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
     cfg = config or EstimatorConfig()
     warm_cfg = dataclasses.replace(cfg, sun_elevation_profile_deg=(), max_iter=options.warm_iters)
     fit_opts = _fit_options(options.resolution, grid, options.min_face_px)
-    focal_px = options.focal_35mm_mm / DIAGONAL_35MM_MM * math.hypot(width, height)
+    focal_px = options.focal_px or options.focal_35mm_mm / DIAGONAL_35MM_MM * math.hypot(width, height)
     detector = ChangeDetector(options.cut_distance, options.change_ratio)
     visibility = head.for_fit()
 
@@ -369,8 +374,8 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
             t0 = time.perf_counter()
             if photo is None:
                 photo = Photo(path=f"frame {tf.index}", kind="video", codes=tf.image, focal_px=focal_px,
-                              focal_source="default" if options.focal_35mm_mm == VideoOptions.focal_35mm_mm
-                              else "option", orientation=1, exif={})
+                              focal_source="option" if options.focal_px or options.focal_35mm_mm != 50.0
+                              else "default", orientation=1, exif={})
             fitted = fit_face(photo, face.landmarks, face.person, fit_opts, visibility=visibility)
             spent["fit_s"] += time.perf_counter() - t0
             last_sample[face.person] = tf.index
@@ -379,18 +384,21 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
                 continue
             obs = FaceObservation(fitted.normals, fitted.observed_rgb, fitted.mask, fitted.visibility_bits, grid,
                                   f"{tf.index}:{face.person}", fitted.points)
-            window.append(Sample(tf.index, tf.time_s, face.person, obs, fitted.pixel_rc, segment, row=row))
+            window.append(Sample(tf.index, tf.time_s, face.person, obs, fitted.pixel_rc, segment,
+                                 yaw_deg=fitted.head.yaw_deg, pitch_deg=fitted.head.pitch_deg, row=row))
             row["sample"] = True
             new = True
         rows.extend(frame_rows)
         if new:
             lit = bool(estimates) and estimates[-1].segment == segment
-            while window and (tf.time_s - window[0].time_s > options.window_s
-                              or len(window) > options.max_window_faces) and (lit or len(window) > options.max_window_faces):
+            while window and tf.time_s - window[0].time_s > options.window_s:
                 window.popleft()
-            # offline: a segment's first light waits for ``cold_faces`` samples (every frame of the
-            # segment then gets it), later ones follow each sample
-            if lit or len(window) >= options.cold_faces:
+            while len(window) > options.max_window_faces:
+                del window[_most_redundant(window)]
+            # offline: a segment's first light waits for ``cold_faces`` samples or ``cold_span_s``
+            # seconds of them (every frame of the segment then gets it); later ones follow each sample
+            span = window[-1].time_s - window[0].time_s if window else 0.0
+            if lit or len(window) >= options.cold_faces or (len(window) > 1 and span >= options.cold_span_s):
                 run_window(tf)
         report.advance()
         t_track = time.perf_counter()
@@ -415,13 +423,16 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
     rc = [s.pixel_rc for s in window]
     last = estimates[-1] if estimates and estimates[-1].segment == segment else None
     try:
+        # one person's samples share one skin albedo: how the same skin brightens and darkens as
+        # the head turns is what the frames tell about the light
+        persons = [s.person for s in window] if options.tie_albedo else None
         if last is None:
-            joint = estimate_joint(obs, model, cfg, pixel_rc=rc)
+            joint = estimate_joint(obs, model, cfg, pixel_rc=rc, albedo_group=persons)
             result, shares = joint.result, joint.faces
         else:
             prior = _temporal_prior(model, last, tf.time_s - last.time_s, options)
             result, shares = refit_joint(obs, model, last.params, warm_cfg, extra_prior=prior, pixel_rc=rc,
-                                         problems=[_problem(s, model, warm_cfg) for s in window])
+                                         problems=[_problem(s, model, warm_cfg) for s in window], albedo_group=persons)
     except errors:
         return None
     used = [s for s, share in zip(window, shares) if share.used]
@@ -432,6 +443,16 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
                           ground_albedo=result.ground_albedo, window=[s.frame for s in used],
                           persons=[s.person for s in used], residual=residual, cold=last is None,
                           runtime_s=time.perf_counter() - t0)
+
+
+def _most_redundant(window) -> int:
+    """The index of the sample (not the newest) whose head pose is nearest another's: the window
+    keeps the poses that differ most (a face seen from several sides constrains the sun)."""
+    poses = np.array([[s.yaw_deg, s.pitch_deg] for s in window], np.float64)
+    poses = np.nan_to_num(poses)
+    d = np.linalg.norm(poses[:, None] - poses[None], axis=2) + np.diag(np.full(len(window), np.inf))
+    nearest = d.min(1)[:-1]  # the newest stays
+    return int(np.argmin(nearest + 1e-9 * np.arange(len(nearest))))  # ties: the oldest
 
 
 def _problem(sample: Sample, model, cfg):
