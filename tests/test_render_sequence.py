@@ -57,6 +57,7 @@ def test_draws_are_deterministic_and_kinds_cycle():
         if spec["kind"] == "cloud":  # a cloud dims a sky's sun, the sky and the shot stay
             a, b = spec["segments"]
             assert a["lighting"]["source"] == "sunsky" and b["lighting"] == a["lighting"]
+            assert abs(a["lighting"]["sun_azimuth_deg"]) >= 90.0  # in front of the face, which it lights
             assert a["sun_power_scale"] == 1.0 and 0.1 <= b["sun_power_scale"] <= 0.2 and spec["change_frame"] == 24
         elif spec["kind"] == "cut":
             a, b = spec["segments"]
@@ -216,3 +217,17 @@ def test_a_rerun_through_the_cli_skips_done_clips(clips):
     assert {k: (out / t["video"]).stat().st_mtime_ns for k, t in truths.items()} == before
     bad = CliRunner().invoke(app, ["eval", "render-faces", "--sequence", "--framing", "group", "--out", str(out)])
     assert bad.exit_code != 0 and "--sequence" in bad.output
+
+
+@pytest.mark.slow
+def test_the_frame_bench_runs_and_denoising_lowers_the_noise():
+    """`python -m f2l.render.sequence_bench` on a tiny frame (the doc's figures are at 1280 × 720)."""
+    pytest.importorskip("mitsuba")
+    pytest.importorskip("anny")
+    from f2l.render.sequence_bench import bench
+
+    result = bench(image_px=160, spp=1, reference_spp=8, frames=2)
+    assert result["image"] == [160, 90] and result["codec"] == "mp4v"
+    assert result["face_noise_rel_rms"]["denoised"] < result["face_noise_rel_rms"]["raw"]
+    assert result["codec_psnr_db"]["min"] > 25.0
+    assert result["sequence_frame"]["cpu_s"] < result["photo_path_frame"]["cpu_s"]
