@@ -90,7 +90,7 @@ GROUPS = {
     }),
     "dev": ("Benchmarks: error against run time, capture, face fitting, detection, scale.", {
         "bench": research.bench, "bench-capture": capture.bench_capture_cmd,
-        "bench-faces": face.bench_faces_cmd, "bench-detect": face.bench_detect_cmd,
+        "bench-faces": face.bench_faces_cmd, "bench-detect": face.bench_detect_cmd, "bench-video": video.bench_video_cmd,
         "scale-report": research.scale_report_cmd,
     }),
 }

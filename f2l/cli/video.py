@@ -81,3 +81,17 @@ def eval_video_cmd(
         typer.echo(json.dumps(rows))
         return
     typer.echo((out / "video.md").read_text())
+
+
+def bench_video_cmd(
+    clips: list[Path] = typer.Argument(..., help="Video files, or folders of them (a render-faces --sequence folder: its clips/, with the truth's Sun-ang)."),
+    model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
+    cold_cache: bool = typer.Option(False, "--cold-cache", help="Build the head's transport table first (what a machine's first clip pays once)."),
+    repeat: int = typer.Option(1, "--repeat", min=1, help="Play each clip back and forth N times (a long clip from a short render)."),
+    json_out: JsonOut = False,
+) -> None:
+    """Frames per second of f2l video on 2 cores, the start-up, and the error beside them (each clip a fresh process)."""
+    from f2l.dev.bench_video import bench_video, table
+
+    rows = bench_video(clips, model, cold_cache=cold_cache, repeat=repeat)
+    typer.echo(json.dumps(rows) if json_out else table(rows))

@@ -62,6 +62,7 @@ class VideoOptions:
     tie_albedo: bool = True  # one skin albedo per person across its samples
     resolution: int = 64  # working px of a sampled face (a photo's: 104)
     warm_iters: int = 12
+    refit_every: int = 3  # after a segment's first light, refit once so many new samples have come
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
     temporal_sigma_deg: float = 2.0  # sigma_0 of the temporal prior
     temporal_weight: float = 1e-2
@@ -73,8 +74,8 @@ class VideoOptions:
     focal_px: float | None = None  # the focal length in px, where known (overrides focal_35mm_mm)
 
     def __post_init__(self) -> None:
-        if min(self.sample_every, self.max_window_faces, self.warm_iters, self.cold_faces) < 1:
-            raise ValueError("sample_every, max_window_faces, cold_faces and warm_iters must be >= 1")
+        if min(self.sample_every, self.max_window_faces, self.warm_iters, self.cold_faces, self.refit_every) < 1:
+            raise ValueError("sample_every, max_window_faces, cold_faces, refit_every and warm_iters must be >= 1")
         if self.change_ratio <= 1.0 or self.window_s <= 0:
             raise ValueError("change_ratio must be > 1 and window_s > 0")
 
@@ -398,7 +399,9 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
             # offline: a segment's first light waits for ``cold_faces`` samples or ``cold_span_s``
             # seconds of them (every frame of the segment then gets it); later ones follow each sample
             span = window[-1].time_s - window[0].time_s if window else 0.0
-            if lit or len(window) >= options.cold_faces or (len(window) > 1 and span >= options.cold_span_s):
+            fresh = sum(1 for w in window if w.frame > estimates[-1].frame) if lit else 0
+            if (fresh >= options.refit_every if lit
+                    else len(window) >= options.cold_faces or (len(window) > 1 and span >= options.cold_span_s)):
                 run_window(tf)
         report.advance()
         t_track = time.perf_counter()
@@ -427,7 +430,7 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
         # the head turns is what the frames tell about the light
         persons = [s.person for s in window] if options.tie_albedo else None
         if last is None:
-            joint = estimate_joint(obs, model, cfg, pixel_rc=rc, albedo_group=persons)
+            joint = estimate_joint(obs, model, cfg, pixel_rc=rc, albedo_group=persons, share_parts=True)
             result, shares = joint.result, joint.faces
         else:
             prior = _temporal_prior(model, last, tf.time_s - last.time_s, options)
