@@ -144,3 +144,32 @@ def test_point_in_polygon_equals_matplotlibs_on_edges_vertices_and_centres():
     assert not _inside(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([[0.5, 0.5]])).any()
     square = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
     assert _inside(square, np.array([[1.0, 1.0], [3.0, 1.0], [1.0, -1.0]])).tolist() == [True, False, False]
+
+
+@pytest.mark.slow
+def test_estimate_on_a_photo_writes_the_same_bits_forked_or_not(tmp_path):
+    """The CLI's forked fit (a real process: stdout and stderr are files) against F2L_NO_FORK."""
+    skdata = pytest.importorskip("skimage.data")
+    import pyarrow.parquet as pq
+    from PIL import Image
+
+    from f2l.io.exr import read_exr
+
+    photo = tmp_path / "astronaut.png"
+    Image.fromarray(skdata.astronaut()).save(photo)
+    outs = {}
+    for name, extra in (("forked", {}), ("here", {forked.NO_FORK_ENV: "1"})):
+        out = tmp_path / name
+        env = {k: v for k, v in os.environ.items() if k != forked.NO_FORK_ENV} | extra
+        proc = subprocess.run([sys.executable, "-m", "f2l.cli", "estimate", str(photo), "-m", "sh9", "--out", str(out),
+                               "--json"], capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout)["ok"] == 1
+        outs[name] = out
+    shard = [p.relative_to(outs["forked"]) for p in outs["forked"].rglob("part-*.parquet")]
+    assert len(shard) == 1 and (outs["forked"] / shard[0]).read_bytes() == (outs["here"] / shard[0]).read_bytes()
+    rows = [pq.read_table(o / "estimates.parquet").drop_columns(["timings_json", "runtime_s"]).to_pylist()
+            for o in outs.values()]
+    assert rows[0][0]["status"] == "ok" and json.dumps(rows[0], default=str) == json.dumps(rows[1], default=str)
+    probes = [sorted(o.glob("probes/sh9/*.exr")) for o in outs.values()]
+    assert len(probes[0]) == 1 and np.array_equal(np.asarray(read_exr(probes[0][0])), np.asarray(read_exr(probes[1][0])))
