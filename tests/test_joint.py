@@ -242,3 +242,50 @@ def test_build_dataset_reads_the_face_cameras_heading_from_the_session_toml_view
     assert _camera_yaw({"view_json": ViewSpec(yaw_deg=30.0).to_json()}) == 30.0
     assert _camera_yaw({"view_json": ViewSpec().to_json()}) is None and _camera_yaw({}) is None
     assert _camera_yaw({"view_json": '{"yaw_deg": "east"}'}) is None  # an unreadable view: no heading
+
+
+@pytest.fixture(scope="module")
+def one_person(skies):
+    """One person (one albedo) in three frames of one exposure, the head turned -30, 5 and 35 degrees."""
+    from f2l.synth.render import render_face
+
+    sunny, _ = skies
+    frames = [render_face(GRID, sunny, np.random.default_rng(30 + i), image_size=72, head_pose_deg=(yaw, -4.0, 2.0),
+                          noise_sigma=0.004, albedo=(0.5, 0.36, 0.3)) for i, yaw in enumerate((-30.0, 5.0, 35.0))]
+    first = frames[0].meta["exposure_scale"]  # each render exposes itself: undo it, as one camera's frames
+    return [dataclasses.replace(f, observed_rgb=np.asarray(f.observed_rgb) * (first / f.meta["exposure_scale"]))
+            for f in frames]
+
+
+def test_frames_of_one_person_share_one_albedo_and_find_the_sun(one_person, sunsky):
+    observations = [_obs(f, str(i)) for i, f in enumerate(one_person)]
+    tied = estimate_joint(observations, sunsky, CFG, albedo_group=[7, 7, 7])
+    albedos = [s.albedo for s in tied.faces]
+    assert all(np.array_equal(a, albedos[0]) for a in albedos)
+    assert all(s.used for s in tied.faces)
+    assert _angle_deg(tied.result.sun_direction, SUN) < 8.0
+    free = estimate_joint(observations, sunsky, CFG)
+    assert not all(np.array_equal(s.albedo, free.faces[0].albedo) for s in free.faces[1:])
+
+
+def test_a_warm_refit_stays_at_the_optimum_and_a_temporal_prior_pulls_its_sun(one_person, sunsky):
+    import torch
+
+    from f2l.estimate.joint import refit_joint
+
+    observations = [_obs(f, str(i)) for i, f in enumerate(one_person)]
+    cold = estimate_joint(observations, sunsky, CFG).result
+    cfg = dataclasses.replace(CFG, sun_elevation_profile_deg=(), max_iter=15)
+    warm, shares = refit_joint(observations, sunsky, cold.params, cfg)
+    assert _angle_deg(warm.sun_direction, cold.sun_direction) < 3.0
+    assert len(shares) == 3 and all(s.data is not None for s in shares)
+    target = direction_from_angles(SUN_EL + math.radians(25.0), SUN_AZ)
+    lay = sunsky.sun_angles
+
+    def pull(params):
+        el, az = params[:, lay.elevation], params[:, lay.azimuth]
+        d = torch.stack([torch.cos(el) * torch.sin(az), torch.sin(el), -torch.cos(el) * torch.cos(az)], 1)
+        return 50.0 * ((d - torch.as_tensor(target)) ** 2).sum(1)
+
+    pulled, _ = refit_joint(observations, sunsky, cold.params, cfg, extra_prior=pull)
+    assert _angle_deg(pulled.sun_direction, target) < _angle_deg(warm.sun_direction, target) - 5.0
