@@ -15,14 +15,16 @@ skies). What a clip holds:
 - ``kind`` ``static``: one light; ``cloud``: a Hosek–Wilkie sky whose sun drops to 10–20% of its
   power at ``change_frame`` (frames // 2), the sky above the horizon unchanged (the ground below
   it, lit by the sun, darkens with it); its sun lights the face (a drawn sun behind the head,
-  |azimuth| < 90°, is turned by 180°), or the cloud would hardly show on it; ``cut``: at ``change_frame`` another shot: another map or
-  sky, turned so that its sun is ≥ 40° from the first's, and with probability ½ each another
-  person and another camera distance (a new exposure);
+  |azimuth| < 90°, is turned by 180°), or the cloud would hardly show on it; ``cut``: at
+  ``change_frame`` another shot: another map or sky (a map's turn or a sky's sun ≥ 40° from the
+  first's when the source is the same), and with probability ½ each another person and another
+  camera distance (a new exposure);
 - exposure fixed per shot: a percentile of the first frame's face pixels (as the photos,
   :func:`f2l.render.dataset.expose`); a cloud keeps it (the face darkens). Per frame, shot + read
   noise from a stream of its own, 8-bit sRGB, then the codec's compression (OpenCV's FFmpeg
   ``mp4v``, MPEG-4 part 2 at OpenCV's default bit rate; ``docs/experiments/video_clips.md``
-  measures it: ≈ 1.9 Mbit/s and ≈ 36 dB PSNR at 1280 × 720).
+  measures it: ≈ 1.9 Mbit/s and ≈ 36 dB PSNR at 1280 × 720, and OpenCV's round trip darkens
+  by 1–4 codes).
 
 Segment k of clip i draws its light, skin material and noise levels as render-faces' portrait
 case ``CASE_BASE + 4 i + k`` of the same seed (:func:`f2l.render.dataset.draw_case`), its head
@@ -30,8 +32,9 @@ from that case's head stream.
 
 Cost (``docs/experiments/video_clips.md``): per shot, the scene, the sky and a background frame
 (the map seen by the camera) are built once; per frame only the head's vertices change (Mitsuba's
-scene parameters, the BVH rebuilt) and only two windows are path-traced: the moving head at
-``spp`` samples per pixel, the torso at ``spp // 2`` (at least 1), each denoised below 16 spp
+scene parameters, the BVH rebuilt) and only two windows are path-traced: the head (down to the
+chin, :data:`HEAD_WEIGHT`) at ``spp`` samples per pixel, the neck and torso at ``spp // 2`` (at
+least 1), each denoised below 16 spp
 (:func:`denoise`), the head's window faded into the torso's; the rest is the background.
 
 Written per clip (resumable: a clip whose truth JSON exists is skipped; a failing clip is recorded
@@ -47,8 +50,10 @@ and the others go on; every file atomic):
     and ``codec``;
   - ``segments``: per segment ``segment`` (k), ``first_frame``, ``last_frame`` (inclusive),
     ``probe`` (path relative to the output folder), ``lighting`` (the draw), ``sky_kind`` (clear |
-    overcast), ``sun_direction`` (unit, camera frame), ``sun_power_scale``, ``exposure``,
-    ``camera_distance_cm``, ``person`` (head stream case and skin tone);
+    overcast), ``sun_direction`` (unit, camera frame), ``sun_elevation_deg``, ``sun_azimuth_deg``,
+    ``sun_power_scale``, ``exposure`` (linear radiance × exposure = the video's linear units),
+    ``camera_distance_cm``, ``camera`` (the draw), ``person`` (head stream case and skin tone),
+    ``head`` (Anny's draw);
   - ``per_frame``: a list, one dict per frame: ``frame``, ``time_s``, ``segment``,
     ``sun_direction`` (unit vector in the CAMERA frame, f2l's convention: +Y up, the camera looks
     along −Z, azimuth 0 = −Z; exact for a sky, the probe's brightest upper texel for a map),
@@ -57,6 +62,8 @@ and the others go on; every file atomic):
     Rx(pitch) Ry(yaw) as render-faces' poses: yaw + turns the face toward +X, the image's right),
     ``face_box`` ([x0, y0, x1, y1] px: cheek to cheek, chin to mid-forehead, as the framed
     photos'), ``face_in_frame``;
+  - ``draw`` (seed, index, motion: :func:`head_pose`'s parameters), ``options``, ``timings_s``
+    (``per_frame_mean`` wall, ``per_frame_cpu_mean`` process CPU, all threads);
 
 - ``clips.json``: the index (render-faces' summary keys, and per clip its kind, status and
   files).
@@ -76,7 +83,8 @@ from f2l.io.progress import Progress, ProgressCallback
 from f2l.render.dataset import PROBE_GRID, RenderOptions, _lighting, _stream, _sun_of, draw_case, turn_lighting
 from f2l.render.scene import SunSkyLighting
 
-__all__ = ["CLIP_KINDS", "SequenceOptions", "clip_id", "draw_clip", "head_pose", "render_clips", "twist_weights"]
+__all__ = ["CLIP_KINDS", "CloudedSunSky", "SequenceOptions", "clip_id", "denoise", "draw_clip", "frame_size", "head_pose",
+           "pose_vertices", "render_clip", "render_clips", "twist_weights"]
 
 CLIP_KINDS = ("static", "cloud", "cut")
 CASE_BASE = 1_000_000  # segment k of clip i draws as portrait case CASE_BASE + 4 i + k
@@ -86,6 +94,7 @@ CUT_MIN_SUN_DEG = 40.0
 CODEC = "mp4v"
 DENOISE_BELOW_SPP = 16  # windows rendered with fewer samples per pixel are denoised
 FEATHER_PX = 12  # the head's window fades into the torso's over this many pixels
+HEAD_WEIGHT = 0.75  # vertices turning with at least this share of the head's rotation are the head's window
 
 
 @dataclass(frozen=True)
@@ -119,11 +128,6 @@ def _camera_draw(rng: np.random.Generator) -> dict:
             "head_width_fraction": round(float(np.exp(rng.uniform(np.log(0.17), np.log(0.30)))), 5),
             "shift_fraction": round(float(rng.uniform(-0.12, 0.12)), 4),
             "eyes_row_fraction": round(float(rng.uniform(0.35, 0.45)), 4)}
-
-
-def _sun_azimuth_deg(lighting: dict) -> float | None:
-    """The sky's sun azimuth, or None for a map (its sun is found on the probe)."""
-    return lighting["sun_azimuth_deg"] if lighting["source"] == "sunsky" else None
 
 
 def draw_clip(seed: int, index: int, options: RenderOptions = RenderOptions(),
@@ -322,9 +326,9 @@ class _Shot:
 
         image = self.background.copy()
         covered = np.zeros(image.shape[:2], bool)
-        moving = self.weights > 0
-        windows = [(self._window(vertices[~moving]), max(1, self.settings.spp // 2)),
-                   (self._window(vertices[moving]), self.settings.spp)]
+        head = self.weights >= HEAD_WEIGHT
+        windows = [(self._window(vertices[~head]), max(1, self.settings.spp // 2)),
+                   (self._window(vertices[head]), self.settings.spp)]
         for i, (window, spp) in enumerate(windows):
             if window is None:
                 continue
@@ -417,6 +421,8 @@ class _VideoWriter:
         import cv2
 
         self.path = Path(path)
+        for stale in self.path.parent.glob(f".{self.path.stem}.*.tmp{self.path.suffix}"):
+            stale.unlink(missing_ok=True)  # left by a run that was killed
         self.tmp = self.path.with_name(f".{self.path.stem}.{os.getpid()}.tmp{self.path.suffix}")
         self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*CODEC), float(fps), size)
         if not self.writer.isOpened():

@@ -12,7 +12,7 @@ shot of clip 0 (seed 0), all in one process so that the ratios hold on a loaded 
   (raw and denoised) and at ``reference_spp`` (itself noisy: its own difference from its denoised
   self is printed as the floor);
 - codec: PSNR (dB) of ``frames`` frames after OpenCV's mp4v round trip, against the 8-bit frames
-  handed to it.
+  handed to it, and the mean signed error per channel (decoded − written, 8-bit codes).
 
 Wall seconds and process CPU seconds (all threads) are both given: CPU / 2 estimates a frame's
 wall time on two idle cores.
@@ -60,7 +60,7 @@ def bench(image_px: int = 1280, spp: int = 4, reference_spp: int = 64, frames: i
     _, photo = _timed(lambda: render_head(posed, shot.lighting, shot.settings))
 
     mi = shot.mi
-    window = shot._window(vertices[shot.weights > 0])
+    window = shot._window(vertices[shot.weights >= seq.HEAD_WEIGHT])
     sensor = mi.load_dict(sensor_dict(mi, shot.settings, "rgb", window))
 
     def head_window(n: int, s: int) -> np.ndarray:
@@ -90,10 +90,12 @@ def bench(image_px: int = 1280, spp: int = 4, reference_spp: int = 64, frames: i
             writer.write(rgb)
         writer.close(keep=True)
         cap = cv2.VideoCapture(str(Path(tmp) / "bench.mp4"))
-        psnr = []
+        psnr, bias = [], []
         for rgb in written:
             ok, bgr = cap.read()
             psnr.append(float(cv2.PSNR(np.ascontiguousarray(bgr[..., ::-1]), rgb)) if ok else float("nan"))
+            if ok:
+                bias.append((bgr[..., ::-1].astype(np.float64) - rgb).mean(axis=(0, 1)))
         cap.release()
     return {"image": list(seq.frame_size(image_px)), "spp": spp, "clip": spec["clip_id"],
             "head_width_fraction": spec["segments"][0]["camera"]["head_width_fraction"],
@@ -101,7 +103,8 @@ def bench(image_px: int = 1280, spp: int = 4, reference_spp: int = 64, frames: i
             "shot_setup": setup, "pose_and_bvh": posing, "sequence_frame": frame, "photo_path_frame": photo,
             "head_window_at_spp": window_time, f"head_window_at_{reference_spp}_spp": reference_time,
             "face_noise_rel_rms": noise, "codec": seq.CODEC,
-            "codec_psnr_db": {"mean": round(float(np.mean(psnr)), 2), "min": round(float(np.min(psnr)), 2)}}
+            "codec_psnr_db": {"mean": round(float(np.mean(psnr)), 2), "min": round(float(np.min(psnr)), 2)},
+            "codec_mean_error_rgb_codes": [round(float(c), 2) for c in np.mean(bias, axis=0)]}
 
 
 def contact_sheet(render_dir: Path, figure: Path, clips: int = 3, width_px: int = 320) -> Path:
