@@ -70,8 +70,8 @@ def write_raw(table: pa.Table, path: Path) -> None:
 @pytest.mark.parametrize("name", ["face_record", "estimates"])
 def test_schema_files_are_complete(name):
     schema = load_schema(name)
-    # estimates v2: the absolute scale; v3: the joint estimate's group columns
-    assert schema["x-schema-version"] == {"face_record": 1, "estimates": 3}[name]
+    # estimates v2: the absolute scale; v3: the joint estimate's group columns; v4: the sun's uncertainty
+    assert schema["x-schema-version"] == {"face_record": 1, "estimates": 4}[name]
     assert set(schema["required"]) == set(schema["properties"])
     for col, prop in schema["properties"].items():
         assert "type" in prop and "description" in prop and "x-arrow-type" in prop, col
@@ -296,7 +296,7 @@ def estimate_row(face_id: str, status: str = "ok", **over) -> dict:
         "timings_json": json.dumps({"fit": 3.0}),
         "absolute_scale_cd_m2": None, "absolute_scale_source": "relative (no absolute scale: the record holds no EXIF)",
         "group_id": "", "group_size": 1, "group_used": None, "agreement": None, "face_weight": None,
-        "exposure_gain": None,
+        "exposure_gain": None, "sun_cone68_deg": 4.0, "sun_cone90_deg": 7.5, "predicted_mae_s": 0.12,
     }
     row.update(over)
     return row

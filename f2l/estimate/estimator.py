@@ -4,7 +4,8 @@
 Bounds are handled by reparameterisation (``BoxTransform``); all starts are optimised together as
 one batched problem with torch's L-BFGS (strong-Wolfe line search). Sun models start from the
 global sun search (f2l.estimate.sun_search), are optimised in psi = albedo x weight, and end with
-the sun's elevation profile (f2l.estimate.sun_profile). Linear models get least-squares starts and
+the sun's elevation profile (f2l.estimate.sun_profile) and the sun's uncertainty from the search's
+scores (f2l.estimate.uncertainty). Linear models get least-squares starts and
 IRLS (f2l.estimate.linear); latent-sky models their own batched search (f2l.estimate.latent).
 """
 
@@ -25,7 +26,9 @@ from f2l.estimate.observation import (BLACK_LEVEL, CLIP_LEVEL, EstimationError, 
 from f2l.estimate.params import BoxTransform
 from f2l.estimate.problem import FaceProblem
 from f2l.estimate.skin import _albedo_gmm_terms, albedo_prior_nll, skin_albedo_gmm, skin_albedo_mean
+from f2l.estimate import sun_search
 from f2l.estimate.sun_profile import elevation_posterior
+from f2l.estimate.uncertainty import sun_uncertainty
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
@@ -80,8 +83,12 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
             starts_theta.append(prob.least_squares_start(rho, cfg.ground_albedo_init))
             starts_rho.append(rho)
     t_search = time.perf_counter()
+    scores = None  # the sun search's scores: the direction posterior's evidence (f2l.estimate.uncertainty)
     if prob.hybrid is not None:
-        initial = prob.sun_search_starts(albedo_starts[0], cfg.ground_albedo_init)
+        setup = prob.search_setup()  # FaceProblem.sun_search_starts, keeping the scores
+        scores = prob.search_scores(setup, cfg.ground_albedo_init)
+        prob.search_candidates = sun_search.pick(scores, prob.grid)
+        initial = prob.starts_from(prob.search_candidates, setup[1], albedo_starts[0])
         if sun_starts is not None:
             initial = _given_sun_starts(initial[0], np.atleast_2d(np.asarray(sun_starts, np.float64)), model.sun_layout)
         # the azimuth is periodic: optimise it unbounded (a sigmoid would pin suns behind the head)
@@ -156,14 +163,14 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     fit_s = time.perf_counter() - t_fit
     converged = its < budget
 
-    profile_s, sun_direction, weights = 0.0, None, None
+    profile_s, sun_direction, weights, profile_dirs = 0.0, None, None, None
     ks = prob.last_ks if prob.spec is not None else None  # the highlight's k_s of each start (sun_specular)
     if prob.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
         t_profile = time.perf_counter()
         post = elevation_posterior(prob, unpack, variables, (params, rho, rho_g, totals, ks), best, cfg, model)
         if post is not None:  # the fit and its pinned copies (f2l.estimate.sun_profile)
             params, rho, rho_g, totals, ks = post.params, post.albedo, post.ground_albedo, post.totals, post.ks
-            best, weights, sun_direction = post.best, post.weights, post.sun_direction
+            best, weights, sun_direction, profile_dirs = post.best, post.weights, post.sun_direction, post.directions
         profile_s = time.perf_counter() - t_profile
 
     with torch.no_grad():
@@ -181,6 +188,11 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     best_np = best_params[0].numpy().astype(np.float64)
     if sun_direction is None:
         sun_direction = model.sun_direction(best_np)
+    t_uncertainty = time.perf_counter()
+    uncertainty = None if scores is None or sun_direction is None else sun_uncertainty(
+        sun_direction, prob.grid.directions_flat[scores.texels], scores.total, scores.yy,
+        np.asarray(obs.normals)[np.asarray(obs.mask, bool)], sun_core == 0.0, profile_dirs, weights)
+    uncertainty_s = time.perf_counter() - t_uncertainty
     runtime = time.perf_counter() - t_start
     return EstimateResult(
         params=best_np,
@@ -194,10 +206,11 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         probe=probe,
         sun_direction=sun_direction,
         timings={"precompute_s": prob.precompute_s, "search_s": search_s, "fit_s": fit_s, "profile_s": profile_s,
-                 "total_s": runtime, "sun_core": sun_core},
+                 "uncertainty_s": uncertainty_s, "total_s": runtime, "sun_core": sun_core},
         start_losses=[float(v) for v in totals],
         num_pixels_used=int(prob.idx.size),
         specular_ks=float(ks[best]) if ks is not None else None,
+        sun_uncertainty=uncertainty,
     )
 
 

@@ -23,6 +23,8 @@ _MODEL_CACHE: dict = {}
 # the joint estimate's columns of a face estimated alone (f2l.estimate.group_record fills them)
 GROUP_DEFAULTS = {"group_id": "", "group_size": 1, "group_used": None, "agreement": None, "face_weight": None,
                   "exposure_gain": None}
+# the sun's uncertainty (f2l.estimate.uncertainty): null without a compact-sun estimate
+UNCERTAINTY_DEFAULTS = {"sun_cone68_deg": None, "sun_cone90_deg": None, "predicted_mae_s": None}
 
 
 def config_hash(model_name: str, model_version: str, cfg: EstimatorConfig, joint: dict | None = None) -> str:
@@ -70,6 +72,7 @@ def _base_row(record_like: dict, model: str) -> dict:
         "config_hash": "",
         "timings_json": "{}",
         **GROUP_DEFAULTS,
+        **UNCERTAINTY_DEFAULTS,
     }
 
 
@@ -160,12 +163,14 @@ def write_result(row: dict, result, scale: float | None, scale_source: str, mode
     (Path(out_dir) / probe_rel).parent.mkdir(parents=True, exist_ok=True)
     (Path(out_dir) / preview_rel).parent.mkdir(parents=True, exist_ok=True)
     probe = result.probe if scale is None else (result.probe * scale).astype(np.float32)
+    uncertainty = uncertainty_columns(result)
     write_exr(Path(out_dir) / probe_rel, probe,
               metadata={"f2l_model": model_name, "f2l_face_id": face_ids, "f2l_convention": "latlong,+Y up,centre=-Z",
                         "f2l_units": "relative: the photo's linear values (1 = full scale)" if scale is None
                         else "cd/m2 (Rec.709 Y of the RGB is the luminance)",
                         "f2l_absolute_scale_cd_m2": "" if scale is None else repr(float(scale)),
-                        "f2l_absolute_scale_source": scale_source})
+                        "f2l_absolute_scale_source": scale_source,
+                        **{f"f2l_{k}": "" if v is None else repr(v) for k, v in uncertainty.items()}})
     save_png(Path(out_dir) / preview_rel, tonemap(probe))
     row.update(
         params=[float(v) for v in result.params],
@@ -183,7 +188,18 @@ def write_result(row: dict, result, scale: float | None, scale_source: str, mode
         timings_json=json.dumps({k: round(float(v), 6) for k, v in result.timings.items()}),
         absolute_scale_cd_m2=None if scale is None else float(scale),
         absolute_scale_source=scale_source,
+        **uncertainty,
     )
+
+
+def uncertainty_columns(result) -> dict:
+    """The row's sun-uncertainty columns (UNCERTAINTY_DEFAULTS) from ``result.sun_uncertainty``
+    (f2l.estimate.uncertainty.SunUncertainty; nulls without one)."""
+    u = getattr(result, "sun_uncertainty", None)
+    if u is None:
+        return dict(UNCERTAINTY_DEFAULTS)
+    return {"sun_cone68_deg": float(u.cone68_deg), "sun_cone90_deg": float(u.cone90_deg),
+            "predicted_mae_s": float(u.predicted_mae_s)}
 
 
 def record_absolute_scale(record) -> tuple[float | None, str]:

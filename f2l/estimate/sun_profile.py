@@ -32,7 +32,7 @@ MIN_GAP_DEG = 2.5  # a pin this close to the fit's own elevation adds nothing
 class ElevationPosterior:
     """The fit (row 0) and its pinned copies: their parameters, albedos, ground albedos,
     objectives, highlight k_s (None without ``sun_specular``), the lowest objective's row, the
-    posterior weights and the posterior-mean sun direction (3,)."""
+    posterior weights, the posterior-mean sun direction (3,) and each row's sun direction (K, 3)."""
 
     params: torch.Tensor
     albedo: torch.Tensor
@@ -42,6 +42,7 @@ class ElevationPosterior:
     best: int
     weights: np.ndarray
     sun_direction: np.ndarray
+    directions: np.ndarray | None = None  # (K, 3) each row's sun direction (f2l.estimate.uncertainty)
 
 
 def posterior_weights(totals: np.ndarray, temperature: float) -> np.ndarray:
@@ -98,4 +99,5 @@ def elevation_posterior(prob, unpack, variables, fit, best: int, cfg: EstimatorC
     norm = float(np.linalg.norm(mean))
     return ElevationPosterior(params=params, albedo=torch.cat([rho[keep], pinned[1]]),
                               ground_albedo=torch.cat([rho_g[keep], pinned[2]]), totals=totals, ks=ks,
-                              best=lowest, weights=weights, sun_direction=mean / norm if norm > 1e-9 else dirs[lowest])
+                              best=lowest, weights=weights, sun_direction=mean / norm if norm > 1e-9 else dirs[lowest],
+                              directions=dirs)

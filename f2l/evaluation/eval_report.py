@@ -10,6 +10,8 @@ scores.
   colour matched (what the sun's direction and the light's colour are worth);
 - :func:`elevation_bias_table`: the median sun elevation error per band and sky source;
 - :func:`residual_table`: far-off suns that fit the photo as well as the truth;
+- :func:`calibration_section`: whether the estimates' sun cones hold the true sun as often as they
+  say, and the risk–coverage curve (f2l.evaluation.calibration; ``eval_real_risk_coverage.png``);
 - :func:`ablation_table`: the error each ablation's re-render removes.
 
 Order in every table: the baselines, the models fitted to the truth (:mod:`f2l.evaluation.truth_fit`),
@@ -30,8 +32,8 @@ from f2l.evaluation.truth_fit import is_truth_fit
 from f2l.io.atomic import atomic_path, write_text_atomic
 from f2l.metrics import METRIC_NAMES
 
-__all__ = ["ablation_table", "breakdown_table", "diagnostics_table", "elevation_bias_table", "residual_table",
-           "summary_table", "sun_direction_table", "write_report"]
+__all__ = ["ablation_table", "breakdown_table", "calibration_section", "diagnostics_table", "elevation_bias_table",
+           "residual_table", "summary_table", "sun_direction_table", "write_report"]
 
 
 def _is_reference(method: str) -> bool:
@@ -220,7 +222,8 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
             + f"\n\n## Sun elevation bias ({part}; median elevation error / mean Sun-ang (cases))\n\n"
             + elevation_bias_table(rows, "report")
             + "\n\n## Does the photo prefer the truth? (both parts; f2l's Lambertian forward model through each record)\n\n"
-            + residual_table(rows) + "\n")
+            + residual_table(rows) + "\n"
+            + calibration_section(rows, out_dir, ("report", "tune") if n["tune"] else ("report",)))
     write_text_atomic(out_dir / "eval_real.md", text)
     keys = list(rows[0]) if rows else []
     with atomic_path(out_dir / "eval_real_rows.csv") as tmp:
@@ -229,6 +232,28 @@ def write_report(rows: list[dict], out_dir: Path) -> dict:
             w.writeheader()
             w.writerows(rows)
     return {"markdown": str(out_dir / "eval_real.md"), "rows": str(out_dir / "eval_real_rows.csv"), "cases": n}
+
+
+def calibration_section(rows: list[dict], out_dir: Path, splits=("report", "tune")) -> str:
+    """Markdown: per part, the calibration of the estimates' sun cones on the clear cases
+    (f2l.evaluation.calibration.calibration_table), and the reporting part's risk–coverage curve
+    drawn to ``out_dir/eval_real_risk_coverage.png``; empty when no row has a cone."""
+    from f2l.evaluation.calibration import calibration_table, plot_risk_coverage, risk_coverage, usable
+
+    clear = [r for r in usable(rows) if r["sky_kind"] == "clear" and not _is_reference(r["method"])]
+    if not clear:
+        return ""
+    text = ""
+    for split in splits:
+        part = [r for r in clear if r["split"] == split]
+        name = {"report": "reporting part", "tune": "tuning part"}[split] if len(splits) > 1 else "all cases"
+        text += (f"\n## The sun's uncertainty ({name}, clear cases; f2l.estimate.uncertainty)\n\n"
+                 + calibration_table(part) + "\n")
+    report = [r for r in clear if r["split"] == splits[0]]
+    curves = {m: risk_coverage([r for r in report if r["method"] == m]) for m in sorted({r["method"] for r in report})}
+    plot_risk_coverage(curves, Path(out_dir) / "eval_real_risk_coverage.png",
+                       f"risk–coverage, {'reporting part' if len(splits) > 1 else 'all cases'}, clear cases")
+    return text + "\n![risk–coverage](eval_real_risk_coverage.png)\n"
 
 
 ABLATION_METRICS = ("Sun-ang (°)", "MAE (s)", "Full-dω MAE (l)")

@@ -48,6 +48,9 @@ Diagnostics (not §5.1 metrics; they say where the error of each method comes fr
   and also colour matched as above. Against the row's MAE (s) and Full-dω MAE they split the error
   into the sun's direction, the light's colour and the rest (the sky's shape, the sun's share);
   :func:`~f2l.evaluation.eval_report.sun_direction_table` lists them.
+- ``sun_cone68_deg``, ``sun_cone90_deg``, ``predicted_mae_s`` (estimates only, NaN elsewhere):
+  the estimate's own sun uncertainty (f2l.estimate.uncertainty), as written in estimates.parquet;
+  :func:`~f2l.evaluation.eval_report.calibration_section` scores it (f2l.evaluation.calibration).
 - ``photo residual`` / ``photo residual, truth``: how well the estimate's probe and the truth each
   explain the face's usable pixels through that record's own transport, skin albedo free per
   channel (:mod:`f2l.evaluation.photo_residual`; NaN for the baselines). :func:`~f2l.evaluation.eval_report.residual_table`
@@ -240,12 +243,13 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
     cache: dict = {}
     rows = []
 
-    def row(method, case, metrics, runtime_s):
+    def row(method, case, metrics, runtime_s, est=None):
         meta = cases[case]
         sky = meta["sky"]
         return {"method": method, "case": case, "split": split_of(meta), "source": meta["lighting"]["source"],
                 "sky_kind": sky["kind"], "sun_elevation_deg": sky["sun_elevation_deg"],
-                "sun_behind_head": sky["sun_behind_head"], "runtime_s": runtime_s, **metrics}
+                "sun_behind_head": sky["sun_behind_head"], "runtime_s": runtime_s, **metrics,
+                **uncertainty_of(est)}
 
     for case, meta in cases.items():
         truth = _truth_on(render_dir, case, grid, cache)
@@ -279,8 +283,18 @@ def evaluate_real(render_dir: Path, runs: dict[str, Path], grid: LatLongGrid = L
                 metrics = _pair(probe, truth, g, cases[case], None if sun is None else np.asarray(sun))
                 metrics.update(residuals.get((face_id, est["model"]), dict.fromkeys(RESIDUAL_NAMES, math.nan)))
                 method = est["model"] if label == "fitted" else f"{est['model']} ({label})"
-                rows.append(row(method, case, metrics, float(est["runtime_s"])))
+                rows.append(row(method, case, metrics, float(est["runtime_s"]), est))
     return rows
+
+
+UNCERTAINTY_NAMES = ("sun_cone68_deg", "sun_cone90_deg", "predicted_mae_s")
+
+
+def uncertainty_of(est: dict | None) -> dict:
+    """An estimates row's sun-uncertainty columns (f2l.estimate.uncertainty), NaN where null or
+    without an estimate (baselines, models fitted to the truth)."""
+    est = est or {}
+    return {k: math.nan if est.get(k) is None else float(est[k]) for k in UNCERTAINTY_NAMES}
 
 
 RESIDUAL_NAMES = ("photo residual", "photo residual, truth")

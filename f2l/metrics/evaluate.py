@@ -61,7 +61,11 @@ def _overcast_and_sun(meta: dict):
     return overcast, (None if sun is None or overcast else np.asarray(sun, dtype=np.float64))
 
 
+CONE_COLUMNS = ("sun_cone68_deg", "sun_cone90_deg", "predicted_mae_s")  # estimates schema 4 (f2l.estimate.uncertainty)
+
+
 def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) -> dict:
+    from f2l.metrics.calibration import calibration_table, usable
     from f2l.io.exr import read_exr
     from f2l.lighting.grid import LatLongGrid
     from f2l.metrics import METRIC_NAMES, evaluate_pair, summarise, summary_records, to_csv, to_markdown
@@ -90,17 +94,20 @@ def evaluate_estimates(estimates_dir: Path, shards: list[Path] | None = None) ->
         est_sun = None if est.get("sun_direction") is None else np.asarray(est["sun_direction"])
         metrics = evaluate_pair(est_probe, gt_probe, grid, overcast=overcast, est_sun_dir=est_sun, gt_sun_dir=gt_sun)
         rows.append({"model": est["model"], "face_id": est["face_id"], "runtime_s": est["runtime_s"], **metrics,
-                     GT_OVERCAST: overcast, **sun_shares(est_probe, gt_probe, grid)})
+                     GT_OVERCAST: overcast, **sun_shares(est_probe, gt_probe, grid),
+                     **{k: est.get(k) for k in CONE_COLUMNS}})
     if not rows:
         raise SystemExit(f"{estimates_dir}: no successful estimate with a ground-truth probe to evaluate")
     summary = summarise(rows, by="model")
     per_face_csv = estimates_dir / "metrics_per_face.csv"
     summary_csv = estimates_dir / "metrics_summary.csv"
     summary_md = estimates_dir / "metrics_summary.md"
-    columns = ["model", "face_id", *METRIC_NAMES, "runtime_s", GT_OVERCAST, SUN_SHARE_EST, SUN_SHARE_GT]
+    columns = ["model", "face_id", *METRIC_NAMES, "runtime_s", GT_OVERCAST, SUN_SHARE_EST, SUN_SHARE_GT, *CONE_COLUMNS]
     _write_rows_csv(rows, per_face_csv, columns)
     to_csv(summary, summary_csv)
     markdown = to_markdown(summary)
+    if usable(rows):  # the sun cones' calibration and risk-coverage (f2l.evaluation.calibration)
+        markdown += "\n\nThe sun's uncertainty (faces with a sun)\n\n" + calibration_table(rows, key="model")
     write_text_atomic(summary_md, markdown + "\n")
     return {
         "rows": rows, "summary": summary, "summary_rows": [_json_ready(r) for r in summary_records(summary)],

@@ -6,11 +6,15 @@ Sections, each present when its inputs are:
 
 - **Metrics**: ``estimates/metrics_summary.csv`` (every model's §5.1 means and run time) and the
   error-against-run-time plot (log time axis, labelled decades only);
+- **The sun's uncertainty**: per model, how often the true sun lies inside the estimates' 68% and
+  90% sun cones (``estimates.parquet``'s ``sun_cone68_deg`` / ``sun_cone90_deg``, f2l.estimate.uncertainty)
+  and the risk–coverage curve (mean Sun-ang of the most confident faces; f2l.evaluation.calibration);
 - **Warnings**: the dataset card's warnings and left-out inputs (path, stage, status, reason);
 - **Sessions**: per session of the card, its probe (tone-mapped, with its coverage and the sun
   marked), the brackets and their statuses and the charts' ΔE from ``WORK`` (``--work``) when given;
 - **Faces**: per face, the photo, mask counts and status, the ground-truth probe next to every
-  model's estimate and its relit preview, and the face's metrics (``metrics_per_face.csv``).
+  model's estimate and its relit preview, and the face's metrics (``metrics_per_face.csv``) with
+  the estimate's sun cones and predicted relit error.
   Faces are paginated (``page_size`` per page: ``report.html``, ``report-2.html``, ...); images
   are lazy-loaded thumbnails cached in ``report_files/`` by the source's path, size and mtime, so a
   re-run rewrites only what changed.
@@ -170,6 +174,55 @@ def _metrics_section(est: Path, out_dir: Path) -> list[Html]:
             _figure(href(os.path.relpath(plot, out_dir).replace(os.sep, "/")), "error against run time", "plot")]
 
 
+UNCERTAINTY_COLUMNS = {"sun_cone68_deg": "sun cone 68% (°)", "sun_cone90_deg": "sun cone 90% (°)",
+                       "predicted_mae_s": "predicted MAE (s)"}
+
+
+def _uncertainty(est: Path) -> dict:
+    """{(face_id, model): {column: value}} of the estimates' sun-uncertainty columns; empty for a
+    table without them (written before estimates schema 4) or none."""
+    import pyarrow.parquet as pq
+
+    path = est / "estimates.parquet"
+    if not path.is_file():
+        return {}
+    names = pq.read_schema(path).names
+    if not all(k in names for k in UNCERTAINTY_COLUMNS):
+        return {}
+    table = pq.read_table(path, columns=["face_id", "model", *UNCERTAINTY_COLUMNS]).to_pylist()
+    return {(r["face_id"], r["model"]): {k: r[k] for k in UNCERTAINTY_COLUMNS} for r in table}
+
+
+def _calibration_section(est: Path, out_dir: Path, uncertainty: dict) -> list[Html]:
+    """Per model: the share of faces whose true sun lies inside its 68% / 90% cone and the mean
+    Sun-ang of the most confident faces, with the risk–coverage plot; nothing without cones."""
+    from f2l.evaluation.calibration import FRACTIONS, cone_coverage, plot_risk_coverage, risk_coverage, usable
+
+    per_face = est / "metrics_per_face.csv"
+    if not uncertainty or not per_face.is_file():
+        return []
+    rows = usable([{**r, **uncertainty.get((r["face_id"], r["model"]), {})} for r in _read_csv(per_face)])
+    if not rows:
+        return []
+    models = sorted({r["model"] for r in rows})
+    curves = {m: risk_coverage([r for r in rows if r["model"] == m]) for m in models}
+    head = el("tr", el("th", "model", class_="l"), el("th", "faces"), el("th", "inside 68% cone"),
+              el("th", "inside 90% cone"), *[el("th", f"mean Sun-ang, most confident {f:.0%} (°)") for f in FRACTIONS])
+    body = []
+    for m in models:
+        cov = cone_coverage([r for r in rows if r["model"] == m])
+        body.append(el("tr", el("td", m, class_="l"), el("td", cov["n"]), el("td", f"{cov['inside 68%']:.0%}"),
+                       el("td", f"{cov['inside 90%']:.0%}"), *[el("td", _fmt(v)) for _, _, v in curves[m]],
+                       id=f"calibration-{m}"))
+    plot = out_dir / FILES_DIR / "risk_coverage.png"
+    plot_risk_coverage(curves, plot)
+    return [el("h2", "The sun's uncertainty: calibration and risk–coverage", id="calibration"),
+            el("p", "Calibrated cones hold the true sun for about 68% and 90% of the faces with a sun; a useful "
+                    "confidence gives its most confident faces a lower mean Sun-ang."),
+            el("table", head, *body, id="calibration-table"),
+            _figure(href(os.path.relpath(plot, out_dir).replace(os.sep, "/")), "risk–coverage", "risk-coverage plot")]
+
+
 def _warnings_section(card: dict) -> list[Html]:
     warnings, left = card.get("warnings", []), card.get("left_out", [])
     out = [el("h2", f"Warnings ({len(warnings)}) and inputs left out ({len(left)})", id="warnings")]
@@ -275,7 +328,7 @@ def _face_rows(folder: Path, est: Path) -> tuple[list[dict], dict]:
     return faces, metrics
 
 
-def _face_block(face: dict, metrics: dict, est: Path, thumbs: _Thumbs) -> Html:
+def _face_block(face: dict, metrics: dict, est: Path, thumbs: _Thumbs, uncertainty: dict | None = None) -> Html:
     from f2l.metrics import METRIC_NAMES
 
     fid = face["face_id"]
@@ -290,9 +343,13 @@ def _face_block(face: dict, metrics: dict, est: Path, thumbs: _Thumbs) -> Html:
     for m in models:
         figs.append(_figure(thumbs.image(est / "probes" / m / f"{fid}.exr", "scene"), f"scene under {m}",
                             f"{m} scene {fid}"))
-    table = el("table", el("tr", el("th", "model", class_="l"), *[el("th", k) for k in METRIC_NAMES], el("th", "s")),
+    unc = uncertainty or {}
+    extra = list(UNCERTAINTY_COLUMNS) if any((fid, m) in unc for m in models) else []
+    table = el("table", el("tr", el("th", "model", class_="l"), *[el("th", k) for k in METRIC_NAMES], el("th", "s"),
+                           *[el("th", UNCERTAINTY_COLUMNS[k]) for k in extra]),
                *[el("tr", el("td", m, class_="l"), *[el("td", _fmt(metrics[fid][m].get(k))) for k in METRIC_NAMES],
-                    el("td", _fmt(metrics[fid][m].get("runtime_s")))) for m in models]) if models else None
+                    el("td", _fmt(metrics[fid][m].get("runtime_s"))),
+                    *[el("td", _fmt(unc.get((fid, m), {}).get(k))) for k in extra]) for m in models]) if models else None
     status = el("span", face["status"], class_="ok" if face["status"] == "ok" else "bad")
     return el("div", el("div", el("strong", fid), " ", status, f" · {face['pixels']} mask pixels · ",
                         el("span", face["source"] or "", class_="small"),
@@ -316,8 +373,10 @@ def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None
     card_path = folder / "dataset_card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
     top: list[Html] = []
+    uncertainty = _uncertainty(est)
     if (est / "metrics_summary.csv").is_file():
         top += _metrics_section(est, out_dir)
+        top += _calibration_section(est, out_dir, uncertainty)
     sheets = [p for p in (folder / "probes_contact_sheet.png", folder / "relit_scene_contact_sheet.png") if p.is_file()]
     if sheets:
         top.append(el("h2", "Contact sheets", id="pictures"))
@@ -336,7 +395,7 @@ def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None
         if faces:
             first = k * page_size
             body.append(el("h2", f"Faces {first + 1}–{first + len(chunk)} of {len(faces)}", id="faces"))
-            body += [_face_block(f, metrics, est, thumbs) for f in chunk]
+            body += [_face_block(f, metrics, est, thumbs, uncertainty) for f in chunk]
         target = out_dir / names[k]
         tmp = target.with_name(target.name + ".tmp")
         tmp.write_text(page(heading, *body, nav=nav), encoding="utf-8")
