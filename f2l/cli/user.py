@@ -102,6 +102,13 @@ def estimate(
     written. Exit code 4 when some failed, 1 when none succeeded."""
     from f2l.pipeline.photos import is_photo_input
 
+    def read_settings() -> dict:
+        return estimate_settings(set_, max_iter=max_iter, max_pixels=max_pixels, sun_prior_from_capture=sun_prior,
+                                 skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+
+    # only a --set can be refused: then it is checked before any photo is fitted (importing torch, so the fit
+    # runs here, not forked); without one, the settings are read while the photos are fitted
+    config_settings = read_settings() if set_ else None
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
         _fail(f"no such photo or shard path: {', '.join(missing)}")
@@ -112,8 +119,8 @@ def estimate(
     photos = [s for s in shards if is_photo_input(s)]
     fitting = _start_fit(photos, out, min_face_px, not json_out) if photos else None
     try:  # while the photos' faces are fitted (a forked child), torch and the estimator load here
-        config_settings = estimate_settings(set_, max_iter=max_iter, max_pixels=max_pixels, sun_prior_from_capture=sun_prior,
-                                            skin_gloss=skin_gloss, skin_reflection=skin_reflection)
+        if config_settings is None:
+            config_settings = read_settings()
         fitted = None
         if fitting is not None:
             from f2l.face.landmarker import LandmarkerError
@@ -127,7 +134,7 @@ def estimate(
                 _fail(str(exc))
     finally:
         if fitting is not None:
-            fitting.cancel()  # only a child still running: a usage error above
+            fitting.cancel()  # a child still running (Ctrl-C, an error here) is stopped
     if fitted is not None:
         shards = [s for s in shards if not is_photo_input(s)] + fitted["shards"]
         if not shards:
