@@ -5,11 +5,12 @@ Evidence. The global sun search (f2l.estimate.sun_search) scored every candidate
 (a ~5.6° lattice over the sky) × sky shape s by its weighted squared residual R_is. Over those
 candidates, the posterior over the sun's direction is
 
-    p_i ∝ Σ_s exp(-τ (R_is - R_min) / R_min),      τ = ``temperature`` (calibrated, TEMPERATURE),
+    p_i ∝ Σ_s exp(-τ (R_is - R_min) / R_min),      τ = ``TEMPERATURE`` (cross-validated),
 
-the relative excess residual as in the elevation profile (f2l.estimate.sun_profile). When the
-estimate ran the profile, its pinned refits (same azimuth, elevations 10-85°) join as further
-mass points with the profile's own posterior weights, mixed in with weight ``PROFILE_SHARE``.
+the relative excess residual as in the elevation profile (f2l.estimate.sun_profile). The
+profile's pinned refits (same azimuth, elevations 10-85°) can join as further mass points with
+the profile's own posterior weights, mixed in with weight ``PROFILE_SHARE`` (0 by default: their
+posterior nearly always sits on one refit, so they narrowed the cones without ranking better).
 
 Posterior cones. Each mass point is spread as a 2-D Gaussian of ``LATTICE_SIGMA_DEG`` per axis (the
 lattice's resolution: a point stands for its cell) in the tangent plane of the estimate's sun ĉ,
