@@ -19,8 +19,7 @@ from f2l.face.geometry import NUM_MESH_LANDMARKS
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.synth.render import pose_matrix
 from f2l.transport.visibility import compute_visibility, front_mask, unpack_bits
-from f2l.video.estimate import (SKIN_LANDMARKS, ChangeDetector, SampleEstimate, VideoOptions,
-                                interpolate_params)
+from f2l.video.estimate import ChangeDetector, SampleEstimate, VideoOptions, interpolate_params
 from f2l.video.head import head_transport
 from f2l.video.track import TrackedFace
 
@@ -100,10 +99,9 @@ def test_a_posed_head_reads_its_table_within_a_texel_of_ray_casting(table):
 def _face(person, box, level, status="ok"):
     x0, y0, x1, y1 = box
     lm = np.zeros((478, 3))
-    lm[:, 0], lm[:, 1] = (x0 + x1) / 2, (y0 + y1) / 2
     rng = np.random.default_rng(person)
-    lm[list(SKIN_LANDMARKS), 0] = rng.uniform(x0 + 5, x1 - 5, len(SKIN_LANDMARKS))
-    lm[list(SKIN_LANDMARKS), 1] = rng.uniform(y0 + 5, y1 - 5, len(SKIN_LANDMARKS))
+    lm[:, 0] = rng.uniform(x0 + 5, x1 - 5, 478)
+    lm[:, 1] = rng.uniform(y0 + 5, y1 - 5, 478)
     return TrackedFace(0, 0.0, person, lm if status == "ok" else None, 1.0, box, 0.0, 0.0, status, "")
 
 
@@ -116,7 +114,7 @@ def _frame(backdrop, box, level):
 
 
 def test_a_new_shot_is_a_cut_and_a_face_that_moves_or_is_covered_is_not():
-    det = ChangeDetector(cut_distance=0.5, change_ratio=1.5)
+    det = ChangeDetector(cut_distance=0.5, change_ratio=1.8)
     box, moved = (100, 40, 160, 110), (130, 50, 190, 120)
     assert det.update(_frame((70, 90, 120), box, 180), [_face(0, box, 180)]) is None
     for _ in range(3):
@@ -124,11 +122,11 @@ def test_a_new_shot_is_a_cut_and_a_face_that_moves_or_is_covered_is_not():
     assert det.update(_frame((70, 90, 120), moved, 180), [_face(0, moved, 180)]) is None  # the face moved
     assert det.update(_frame((70, 90, 120), moved, 128), [_face(0, moved, 128, "covered")]) is None
     why = det.update(_frame((40, 140, 60), moved, 180), [_face(0, moved, 180)])
-    assert why is not None and why.startswith("cut")
+    assert why is not None and why.startswith("cut or light")
 
 
 def test_a_sudden_change_of_the_light_on_a_face_starts_a_segment_and_a_small_one_does_not():
-    det = ChangeDetector(cut_distance=0.5, change_ratio=1.5)
+    det = ChangeDetector(cut_distance=0.5, change_ratio=1.8)
     box = (100, 40, 160, 110)
     for _ in range(4):
         assert det.update(_frame((70, 90, 120), box, 200), [_face(0, box, 200)]) is None
@@ -189,7 +187,7 @@ def test_a_clip_gives_a_light_per_frame_that_finds_each_shots_sun(clip, tmp_path
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output)
     assert [s["first_frame"] for s in summary["segments"]] == [0, 12]
-    assert summary["segments"][1]["why"].startswith("cut")
+    assert summary["segments"][1]["why"].startswith("cut or light")
     rows = pq.read_table(tmp_path / "out" / "frames.parquet").to_pylist()
     assert [r["frame"] for r in rows] == list(range(24))
     for r in rows:
@@ -242,3 +240,10 @@ def test_a_file_that_is_not_a_video_fails_with_its_name(tmp_path):
     res = _run(bad, tmp_path / "out")
     assert res.exit_code == 1
     assert "notes.mp4" in res.output
+
+
+def test_estimate_given_a_clip_points_to_f2l_video(clip, tmp_path):
+    path, _ = clip
+    res = CliRunner().invoke(app, ["estimate", str(path), "-m", "sunsky", "--out", str(tmp_path / "est")])
+    assert res.exit_code == 2
+    assert "f2l video" in res.output and path.name in res.output

@@ -67,10 +67,10 @@ def _root(
 
 
 USER_COMMANDS = {
-    "estimate": user.estimate, "fit-faces": face.fit_faces_cmd, "ingest": capture.ingest_cmd,
+    "estimate": user.estimate, "video": video.video_cmd, "fit-faces": face.fit_faces_cmd, "ingest": capture.ingest_cmd,
     "make-probes": capture.make_probes_cmd, "calibrate": colour.calibrate_cmd,
     "build-dataset": build.build_dataset_cmd, "evaluate": user.evaluate, "report": user.report,
-    "models": user.models, "demo": user.demo, "video": video.video_cmd,
+    "models": user.models, "demo": user.demo,
 }
 """The user's path, in the order ``--help`` lists it."""
 

@@ -12,6 +12,8 @@ import typer
 from f2l.cli.common import JsonOut, Seed, estimate_settings, exit_for, fail as _fail, print_settings
 from f2l.cli.progress import progress_bars
 
+VIDEO_EXTENSIONS = frozenset({".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mts", ".m2ts", ".3gp", ".mpg", ".mpeg"})
+
 
 def models(json_out: JsonOut = False) -> None:
     """List the installed lighting models (entry-point group f2l.lighting_models)."""
@@ -112,6 +114,9 @@ def estimate(
     missing = [str(s) for s in shards if not Path(s).exists()]
     if missing:
         _fail(f"no such photo or shard path: {', '.join(missing)}")
+    clips = [str(s) for s in shards if Path(s).suffix.lower() in VIDEO_EXTENSIONS]
+    if clips:
+        _fail(f"{', '.join(clips)}: a video; its light per frame comes from `f2l video CLIP -m {model[0]} --out DIR`")
     if executor not in ("local", "ray"):
         raise typer.BadParameter("must be local or ray", param_hint="--executor")
     if joint not in ("photo", "session", "none"):

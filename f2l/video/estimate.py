@@ -3,20 +3,28 @@
 A face in a clip turns and nods under the same sky, so its frames are several views of one light
 (:mod:`f2l.estimate.joint`). Per clip (:func:`estimate_clip`):
 
-1. **Track** each face (:mod:`f2l.video.track`) and watch for **changes**: a cut (the frame's
-   colour histogram moves by more than ``cut_distance`` in L1 between two frames) or a sudden
-   change of the light on a face (its skin's mean linear luminance jumps by more than
-   ``change_ratio`` against the median of its last three frames: a cloud over the sun, walking
-   into shade). Each change starts a new **segment**; nothing is shared across segments.
+1. **Track** each face (:mod:`f2l.video.track`) and watch for **changes**: a cut or a change of
+   the whole scene's light (the frame's colour histogram outside the faces' boxes, the same region
+   in both frames, moves by more than ``cut_distance`` in L1 between two frames), or a sudden
+   change of the light on a face (its mean linear luminance over patches at its 468 landmarks
+   jumps by more than ``change_ratio`` against the median of its last three frames: a cloud over
+   the sun, walking into shade). Each change starts a new **segment**; nothing is shared across
+   segments.
 2. **Sample** a face every ``sample_every`` frames (and at once in a new segment), fitted as a
    photo's face is (:func:`f2l.face.fit.fit_face`, at ``resolution`` px) but with its transport
-   read from the head's cached table (:mod:`f2l.video.head`) instead of ray casting.
-3. **Estimate** at each sample: the light shared by the segment's samples of the last
-   ``window_s`` seconds (at most ``max_window_faces``, every person's: one camera, one sky). The
-   segment's first estimate is the full joint estimate (sun search, disagreeing faces left out,
-   elevation profile); the next ones start from the last light (:func:`f2l.estimate.joint.refit_joint`,
-   ``warm_iters`` L-BFGS iterations) with a prior on how fast the sun can move in the camera's
-   frame: ``temporal_weight`` · ½ |s − s_last|² / σ², σ² = σ₀² + (``light_rate_deg_s`` · Δt)².
+   read from the head's cached table (:mod:`f2l.video.head`) instead of ray casting. The window
+   holds the segment's samples of the last ``window_s`` seconds, at most ``max_window_faces``
+   (every person's: one camera, one sky); over that, the sample whose head pose is nearest
+   another's leaves (a face seen from several sides constrains the sun).
+3. **Estimate** the window's light. The segment's first light waits (the clip is processed
+   offline) for ``cold_faces`` samples, or samples ``cold_span_s`` apart, or the segment's end; it
+   is the full joint estimate (sun search, disagreeing faces left out, elevation profile). Then
+   every ``refit_every`` new samples the window is refitted from the last light
+   (:func:`f2l.estimate.joint.refit_joint`, ``warm_iters`` L-BFGS iterations) under a prior on how
+   fast the sun can move in the camera's frame: ``temporal_weight`` · ½ |s − s_last|² / σ², σ² =
+   σ₀² + (``light_rate_deg_s`` · Δt)². One person's samples share one skin albedo
+   (``tie_albedo``): how the same skin brightens and darkens as the head turns is what the frames
+   tell about the light.
 4. **Every frame** gets the light of its segment, interpolated in time between the estimates
    around it (each placed at the mean time of its window; the sun's direction interpolated on
    the sphere), so a static light does not jitter and a frame is never lit by another segment.
@@ -40,10 +48,8 @@ import numpy as np
 from f2l.lighting.grid import LatLongGrid
 
 __all__ = ["ChangeDetector", "Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light",
-           "interpolate_params", "skin_luminance"]
+           "face_luminance", "interpolate_params"]
 
-# landmarks on the forehead, cheeks and chin (MediaPipe's 468-point topology): the skin's brightness
-SKIN_LANDMARKS = (10, 151, 9, 108, 337, 50, 280, 118, 347, 123, 352, 205, 425, 199, 175)
 HISTOGRAM_BINS = 16
 HISTOGRAM_SIDE = 96  # frames are reduced to this long side for the histogram
 BOX_MARGIN = 1.6  # a face's box widened this much is left out of the frame's histogram (hair, hands)
@@ -66,7 +72,7 @@ class VideoOptions:
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
     temporal_sigma_deg: float = 2.0  # sigma_0 of the temporal prior
     temporal_weight: float = 1e-2
-    change_ratio: float = 1.5
+    change_ratio: float = 1.8
     cut_distance: float = 0.5
     min_face_px: float = 40.0
     keyframe_every: int = 30
@@ -127,28 +133,29 @@ class ClipLight:
     param_names: list[str] = field(default_factory=list)
 
 
-def skin_luminance(linear_rgb_at: callable, landmarks: np.ndarray) -> float:
-    """Mean linear luminance of the skin around ``SKIN_LANDMARKS`` (``linear_rgb_at(xy)`` samples)."""
-    xy = np.asarray(landmarks, np.float64)[list(SKIN_LANDMARKS), :2]
-    rgb = linear_rgb_at(xy)
-    return float(np.mean(rgb @ np.array([0.2126, 0.7152, 0.0722])))
-
-
-def _patch_sampler(image: np.ndarray, radius: int = 2):
-    """``xy -> linear RGB (n, 3)``: the mean over a (2r+1)² patch of an sRGB uint8 frame."""
+def face_luminance(image: np.ndarray, landmarks: np.ndarray, radius: int = 2) -> float:
+    """Mean linear luminance of an sRGB uint8 frame over (2r+1)² patches at the face's 468 mesh
+    landmarks: a whole-face brightness that a shadow edge crossing a few landmarks barely moves."""
     from f2l.io.photo.core import srgb_to_linear
 
     h, w = image.shape[:2]
+    xy = np.rint(np.asarray(landmarks, np.float64)[:468, :2]).astype(np.int64)
+    off = np.arange(-radius, radius + 1)
+    cols = np.clip(xy[:, 0, None, None] + off[None, None, :], 0, w - 1)
+    rows = np.clip(xy[:, 1, None, None] + off[None, :, None], 0, h - 1)
+    codes = image[rows, cols].reshape(-1, 3)
+    lut = _linear_lut(srgb_to_linear)
+    return float((lut[codes] @ np.array([0.2126, 0.7152, 0.0722])).mean())
 
-    def sample(xy: np.ndarray) -> np.ndarray:
-        out = []
-        for x, y in xy:
-            c, r = int(np.clip(x, 0, w - 1)), int(np.clip(y, 0, h - 1))
-            patch = image[max(0, r - radius): r + radius + 1, max(0, c - radius): c + radius + 1]
-            out.append(np.asarray(srgb_to_linear(patch.reshape(-1, 3).astype(np.float64) / 255.0)).mean(0))
-        return np.asarray(out)
 
-    return sample
+_LUT = None
+
+
+def _linear_lut(srgb_to_linear) -> np.ndarray:
+    global _LUT
+    if _LUT is None:
+        _LUT = np.asarray(srgb_to_linear(np.arange(256) / 255.0), np.float64)
+    return _LUT
 
 
 def _small(image: np.ndarray) -> tuple[np.ndarray, int]:
@@ -204,15 +211,14 @@ class ChangeDetector:
             mask = face_free_mask(small.shape[:2], k, boxes + self._last[1])
             distance = float(np.abs(frame_histogram(small, mask) - frame_histogram(self._last[0], mask)).sum() / 3.0)
             if distance > self.cut_distance:
-                why = f"cut: the frame's colours moved by {distance:.2f} (limit {self.cut_distance:.2f})"
+                why = f"cut or light: the colours outside the faces moved by {distance:.2f} (limit {self.cut_distance:.2f})"
         self._last = (small, boxes)
         if why is not None:
             self.reset()
-        sample = _patch_sampler(image)
         for face in faces:
             if face.landmarks is None or face.status != "ok":
                 continue
-            lum = skin_luminance(sample, face.landmarks)
+            lum = face_luminance(image, face.landmarks)
             past = self._skin.setdefault(face.person, deque(maxlen=3))
             if why is None and len(past) == past.maxlen:
                 ref = float(np.median(past))
