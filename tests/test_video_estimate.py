@@ -207,6 +207,10 @@ def test_a_clip_gives_a_light_per_frame_that_finds_each_shots_sun(clip, tmp_path
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 24
     cap.release()
     assert (tmp_path / "out" / "sun_track.png").stat().st_size > 0
+    res = CliRunner().invoke(app, ["report", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    html = (tmp_path / "out" / "report.html").read_text()
+    assert 'id="clip"' in html and "sun_track.png" in html and "cut or light" in html
 
 
 def test_frames_where_the_face_is_covered_carry_a_status_and_the_rest_keep_their_light(clip, tmp_path):

@@ -10,6 +10,8 @@ import typer
 
 from f2l.cli.common import JsonOut, fail
 
+VIDEO_RESOLUTION = 104  # f2l.video.estimate.VideoOptions.resolution (not imported: --help stays light)
+
 
 def video_cmd(
     clip: Path = typer.Argument(..., help="A video file (MP4, MOV, MKV, AVI...; decoded by OpenCV's FFmpeg, rotation metadata applied)."),
@@ -22,6 +24,7 @@ def video_cmd(
     max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Only the first N frames."),
     focal_35mm_mm: float = typer.Option(50.0, "--focal-35mm", min=5.0, help="The camera's 35 mm-equivalent focal length (clips rarely record it)."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", min=8.0, help="The smallest face to follow, in px."),
+    resolution: int = typer.Option(VIDEO_RESOLUTION, "--resolution", min=32, max=256, help="Working px of a sampled face (a photo's: 104)."),
     json_out: JsonOut = False,
 ) -> None:
     """Estimate a clip's light per frame: faces tracked, one light per window of frames, restarted at cuts and sudden changes."""
@@ -36,7 +39,7 @@ def video_cmd(
     except ModelNotFoundError as exc:
         fail(str(exc))
     options = VideoOptions(model=model, sample_every=sample_every, window_s=window_s, focal_35mm_mm=focal_35mm_mm,
-                           min_face_px=min_face_px)
+                           min_face_px=min_face_px, resolution=resolution)
     try:
         with progress_bars(not json_out) as progress:
             summary = estimate_clip(clip, out, options, every=every, preview=preview, max_frames=max_frames,
@@ -66,6 +69,7 @@ def eval_video_cmd(
     metrics_every: int = typer.Option(8, "--metrics-every", min=1, help="The §5.1 metrics every Nth frame."),
     sample_every: int = typer.Option(8, "--sample-every", min=1, help="f2l video's --sample-every."),
     window_s: float = typer.Option(4.0, "--window-s", min=0.05, help="f2l video's --window-s."),
+    resolution: int = typer.Option(VIDEO_RESOLUTION, "--resolution", min=32, max=256, help="f2l video's --resolution."),
     json_out: JsonOut = False,
 ) -> None:
     """Light from clips against the truth and against each frame alone: Sun-ang, jitter, settling, §5.1, frames/s."""
@@ -73,7 +77,7 @@ def eval_video_cmd(
     from f2l.evaluation.video import eval_video
     from f2l.video.estimate import VideoOptions
 
-    options = VideoOptions(model=model, sample_every=sample_every, window_s=window_s)
+    options = VideoOptions(model=model, sample_every=sample_every, window_s=window_s, resolution=resolution)
     with progress_bars(not json_out) as progress:
         rows = eval_video(render_dirs, out, options, alone_every=alone_every, metrics_every=metrics_every,
                           progress=progress)
@@ -88,10 +92,11 @@ def bench_video_cmd(
     model: str = typer.Option("sunsky", "--model", "-m", help="Lighting model."),
     cold_cache: bool = typer.Option(False, "--cold-cache", help="Build the head's transport table first (what a machine's first clip pays once)."),
     repeat: int = typer.Option(1, "--repeat", min=1, help="Play each clip back and forth N times (a long clip from a short render)."),
+    resolution: int = typer.Option(VIDEO_RESOLUTION, "--resolution", min=32, max=256, help="f2l video's --resolution."),
     json_out: JsonOut = False,
 ) -> None:
     """Frames per second of f2l video on 2 cores, the start-up, and the error beside them (each clip a fresh process)."""
     from f2l.dev.bench_video import bench_video, table
 
-    rows = bench_video(clips, model, cold_cache=cold_cache, repeat=repeat)
+    rows = bench_video(clips, model, extra=["--resolution", str(resolution)], cold_cache=cold_cache, repeat=repeat)
     typer.echo(json.dumps(rows) if json_out else table(rows))

@@ -377,6 +377,10 @@ def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None
     if (est / "metrics_summary.csv").is_file():
         top += _metrics_section(est, out_dir)
         top += _calibration_section(est, out_dir, uncertainty)
+    from f2l.report.clip import clip_section, is_clip_output
+
+    if is_clip_output(folder):  # an f2l video output
+        top += clip_section(folder, out_dir, thumbs)
     sheets = [p for p in (folder / "probes_contact_sheet.png", folder / "relit_scene_contact_sheet.png") if p.is_file()]
     if sheets:
         top.append(el("h2", "Contact sheets", id="pictures"))

@@ -66,7 +66,7 @@ class VideoOptions:
     cold_faces: int = 6  # a segment's first light waits for this many samples, or
     cold_span_s: float = 2.0  # for samples this far apart (or the segment's end)
     tie_albedo: bool = True  # one skin albedo per person across its samples
-    resolution: int = 64  # working px of a sampled face (a photo's: 104)
+    resolution: int = 104  # working px of a sampled face (as a photo's)
     warm_iters: int = 12
     refit_every: int = 3  # after a segment's first light, refit once so many new samples have come
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
