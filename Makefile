@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings eval-groups eval-sessions bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
+.PHONY: setup demo test browser test-cpu-paths fuzz readme-figure bench bench-detect eval-framings eval-groups eval-sessions eval-video bench-faces prior ae-weights eval-ae eval-sunsky eval-fit-faces eval-real eval-real-heldout eval-real-ablations eval-real-geometry eval-real-search hdri-import sun-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -98,6 +98,18 @@ eval-sessions: $(STAMP)
 	$(BIN)/f2l eval render-faces --out $(EVAL_SESSIONS)/render --n 36 --seed 0 --session-size 3 --image-px 320 --spp 32 --json
 	$(BIN)/f2l fit-faces $(EVAL_SESSIONS)/render/photos --out $(EVAL_SESSIONS)/fitted --json
 	$(BIN)/f2l eval sessions $(EVAL_SESSIONS)/render --fitted $(EVAL_SESSIONS)/fitted --out $(EVAL_SESSIONS)/eval --tag $(EVAL_SESSIONS)/tagged
+
+# Light from video (f2l video; f2l.video): path-traced clips of a head turning and nodding, 48
+# frames at 1280x720, static light, a cloud over the sun or a cut (render-faces --sequence);
+# seed 0 tunes, seed 1 reports. Per clip: Sun-ang against each frame alone as a photo, jitter,
+# settling after a change, the 5.1 metrics and frames/s; then frames/s on 10-second clips (each
+# static clip played back and forth 5 times). About 35 min on 2 cores; the renders are resumable.
+EVAL_VIDEO := build/eval_video
+eval-video: $(STAMP)
+	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 0 --out $(EVAL_VIDEO)/s0 --json
+	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 1 --out $(EVAL_VIDEO)/s1 --json
+	$(BIN)/f2l eval video $(EVAL_VIDEO)/s0 $(EVAL_VIDEO)/s1 --out $(EVAL_VIDEO)/eval
+	$(BIN)/f2l dev bench-video $(EVAL_VIDEO)/s0/clips/clip-s0-00000-static.mp4 $(EVAL_VIDEO)/s1/clips/clip-s1-00000-static.mp4 --repeat 5
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
 prior: $(STAMP)

@@ -23,7 +23,7 @@ from f2l.video.estimate import ChangeDetector, SampleEstimate, VideoOptions, int
 from f2l.video.head import head_transport
 from f2l.video.track import TrackedFace
 
-from tests.video_helpers import focal_35mm, synth_clip
+from tests.video_helpers import focal_35mm, sequence_folder, synth_clip
 
 GRID = LatLongGrid(32, 64)
 
@@ -164,11 +164,16 @@ SUNS = [(35.0, 60.0), (20.0, -80.0)]
 
 
 @pytest.fixture(scope="module")
-def clip(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("clip")
-    path = folder / "two_shots.mp4"
-    truth = synth_clip(path, SUNS, renders=4, hold=3, yaw_range_deg=15.0)
-    return path, truth
+def sequence(tmp_path_factory):
+    """A render-faces --sequence-like folder with one synthetic two-shot clip."""
+    return sequence_folder(tmp_path_factory.mktemp("seq"), SUNS, renders=4, hold=3, yaw_range_deg=15.0)
+
+
+@pytest.fixture(scope="module")
+def clip(sequence):
+    truth = json.loads((sequence / "truth" / "clip-s0-00000-cut.json").read_text())
+    per_frame = [{"segment": f["segment"], "sun": np.asarray(f["sun_direction"])} for f in truth["per_frame"]]
+    return sequence / "clips" / "clip-s0-00000-cut.mp4", per_frame
 
 
 @pytest.fixture(autouse=True)
@@ -251,3 +256,28 @@ def test_estimate_given_a_clip_points_to_f2l_video(clip, tmp_path):
     res = CliRunner().invoke(app, ["estimate", str(path), "-m", "sunsky", "--out", str(tmp_path / "est")])
     assert res.exit_code == 2
     assert "f2l video" in res.output and path.name in res.output
+
+
+def test_eval_video_scores_a_clip_against_its_truth_and_each_frame_alone(sequence, tmp_path):
+    res = CliRunner().invoke(app, ["eval", "video", str(sequence), "--out", str(tmp_path / "ev"), "--json",
+                                   "--sample-every", "3", "--alone-every", "6", "--metrics-every", "12"])
+    assert res.exit_code == 0, res.output
+    (row,) = json.loads(res.output)
+    assert row["clip"] == "clip-s0-00000-cut" and row["part"] == "tune" and row["scored_frames"] == 24
+    assert row["change_found"] is True and row["false_changes"] == 0 and row["settle_s"] is not None
+    assert row["sun_ang_video"] < 15.0 and row["alone_frames"] >= 3 and row["sun_ang_alone"] is not None
+    assert row["jitter_rms_deg"] is not None and row["jitter_rms_deg"] < 2.0
+    assert row["mae_s_video"] is not None and row["frames_per_s"] > 0
+    assert "clip-s0-00000-cut" in (tmp_path / "ev" / "video.md").read_text()
+
+
+def test_bench_video_times_a_clip_in_a_fresh_process(clip, tmp_path):
+    from f2l.dev.bench_video import bench_video, ping_pong, table
+
+    path, _ = clip
+    longer, order = ping_pong(path, 2, tmp_path)
+    assert len(order) == 48 and order[23] == 23 and order[24] == 23 and order[47] == 0
+    (row,) = bench_video([path], extra=["--focal-35mm", f"{focal_35mm(160):.4f}"])
+    assert "error" not in row, row
+    assert row["frames"] == 24 and row["frames_per_s"] > 0 and row["startup_s"] >= 0 and row["sun_ang"] < 15.0
+    assert "frames/s" in table([row])

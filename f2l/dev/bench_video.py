@@ -50,6 +50,16 @@ def ping_pong(clip: Path, repeat: int, out: Path) -> tuple[Path, list[int]]:
     return path, order
 
 
+def _jitter(out: Path) -> float | None:
+    """RMS (degrees) of the sun's change between consecutive frames of one segment."""
+    import pyarrow.parquet as pq
+
+    rows = {r["frame"]: r for r in pq.read_table(out / "frames.parquet").to_pylist() if r["sun_direction"] is not None}
+    steps = [math.degrees(math.acos(float(np.clip(np.dot(rows[f]["sun_direction"], rows[f + 1]["sun_direction"]), -1, 1))))
+             for f in rows if f + 1 in rows and rows[f]["segment"] == rows[f + 1]["segment"]]
+    return float(np.sqrt(np.mean(np.square(steps)))) if steps else None
+
+
 def _sun_ang(out: Path, truth: dict, frame_map: list[int] | None = None) -> float | None:
     import pyarrow.parquet as pq
 
@@ -94,6 +104,7 @@ def bench_clip(clip: Path, model: str = "sunsky", extra: list[str] | None = None
             "frames_per_s": timings["frames_per_s"], "track_s": timings["track_s"], "fit_s": timings["fit_s"],
             "estimate_s": timings["estimate_s"], "estimates": timings["estimates"], "peak_mib": round(peak_mib),
             "sun_ang": _sun_ang(run_out, truth, frame_map) if truth is not None else None,
+            "jitter_deg": _jitter(run_out),
         }
         from f2l.video.decode import probe_video
 
@@ -121,14 +132,15 @@ def bench_video(clips: list[Path], model: str = "sunsky", extra: list[str] | Non
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| clip | size | frames | start-up s | frames/s | track / fit / estimate s | estimates | peak MiB | Sun-ang ° |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| clip | size | frames | start-up s | frames/s | track / fit / estimate s | estimates | peak MiB | Sun-ang ° | jitter ° RMS |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['clip']} | failed: {r['error']} |||||||")
+            lines.append(f"| {r['clip']} | failed: {r['error']} ||||||||")
             continue
         sun = "–" if r["sun_ang"] is None else f"{r['sun_ang']:.1f}"
+        jitter = "–" if r["jitter_deg"] is None else f"{r['jitter_deg']:.3f}"
         lines.append(f"| {r['clip']} | {r['size']} | {r['frames']} | {r['startup_s']:.2f} | {r['frames_per_s']:.1f} | "
                      f"{r['track_s']:.2f} / {r['fit_s']:.2f} / {r['estimate_s']:.2f} | {r['estimates']} | "
-                     f"{r['peak_mib']} | {sun} |")
+                     f"{r['peak_mib']} | {sun} | {jitter} |")
     return "\n".join(lines) + "\n"

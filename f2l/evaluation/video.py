@@ -17,7 +17,7 @@ run through ``f2l video`` (:func:`f2l.video.run.estimate_clip`) and scored frame
   frame, for the clip's light and for the frame alone;
 * **speed**: frames per second of the whole clip (tracking, fits, estimates) after start-up.
 
-Clips with an even index tune, odd ones report (as eval-real's parts).
+Clips of seed 0 tune, the others report (as ``make eval-groups``' seeds).
 """
 
 from __future__ import annotations
@@ -178,7 +178,7 @@ def eval_clip(clip_path: Path, truth: dict, render_dir: Path, out: Path, options
     timings = summary["timings"]
     return {
         "clip": clip_id, "kind": truth["kind"], "frames": truth["frames"],
-        "part": "tune" if int(clip_id.split("-")[2]) % 2 == 0 else "report",
+        "part": "tune" if clip_id.split("-")[1] == "s0" else "report",
         "scored_frames": len(errors),
         "sun_ang_video": float(np.mean(list(errors.values()))) if errors else None,
         "sun_ang_video_median": float(np.median(list(errors.values()))) if errors else None,

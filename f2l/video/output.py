@@ -145,7 +145,7 @@ def write_preview(clip_path, rows: list[dict], model, out: Path, fps: float, eve
     grid = model.grid
     first = _probe(model, lights[min(lights)]["params"], lights[min(lights)]["ground_albedo"])
     exposure_ev = math.log2(max(auto_exposure_scale(first[: grid.sky_rows], 99.0), 1e-30))
-    t_all, el_all, _ = sun_track(rows)
+    t_all, el_all, az_all = sun_track(rows)
     path = out / "preview.mp4"
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.mp4")
     writer = None
@@ -165,7 +165,7 @@ def write_preview(clip_path, rows: list[dict], model, out: Path, fps: float, eve
                     k = probe_img.shape[0] / grid.height
                     cv2.circle(probe_img, (int((int(c[0]) + 0.5) * k), int((int(r[0]) + 0.5) * k)), 8, (255, 64, 64), 2)
             right_top = probe_img if probe_img is not None else np.zeros((PREVIEW_HEIGHT // 2, PREVIEW_HEIGHT, 3), np.uint8)
-            track = _track_panel(t_all, el_all, time_s, right_top.shape[1], PREVIEW_HEIGHT - right_top.shape[0])
+            track = _track_panel(t_all, el_all, time_s, right_top.shape[1], PREVIEW_HEIGHT - right_top.shape[0], az_all)
             frame = np.concatenate([left, np.concatenate([right_top, track], 0)], 1)
             if writer is None:
                 writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps / max(every, 1),
@@ -180,8 +180,10 @@ def write_preview(clip_path, rows: list[dict], model, out: Path, fps: float, eve
     return path
 
 
-def _track_panel(t: np.ndarray, el: np.ndarray, now_s: float, width: int, height: int) -> np.ndarray:
-    """A small plot of the sun's elevation (0–90°) over the clip, up to ``now_s``."""
+def _track_panel(t: np.ndarray, el: np.ndarray, now_s: float, width: int, height: int,
+                 az: np.ndarray | None = None) -> np.ndarray:
+    """A small plot (RGB) of the sun's elevation (0–90°, orange) and azimuth (±180°, blue) over the
+    clip, up to ``now_s``."""
     import cv2
 
     panel = np.full((height, width, 3), 24, np.uint8)
@@ -189,13 +191,18 @@ def _track_panel(t: np.ndarray, el: np.ndarray, now_s: float, width: int, height
         return panel
     span = max(float(t[-1] - t[0]), 1e-6)
     x = ((t - t[0]) / span * (width - 1)).astype(np.int32)
-    y = (height - 1 - np.clip(el, 0, 90) / 90.0 * (height - 1)).astype(np.int32)
     shown = t <= now_s
-    if shown.sum() >= 2:
-        cv2.polylines(panel, [np.stack([x[shown], y[shown]], 1)], False, (255, 200, 64), 1)
+    lines = [(np.clip(el, 0, 90) / 90.0, (255, 170, 40))]
+    if az is not None:
+        lines.append(((np.asarray(az) + 180.0) / 360.0, (90, 160, 255)))
+    for frac, colour in lines:
+        y = (height - 8 - frac * (height - 24)).astype(np.int32)
+        if shown.sum() >= 2:
+            cv2.polylines(panel, [np.stack([x[shown], y[shown]], 1)], False, colour, 2)
     cx = int((min(max(now_s, t[0]), t[-1]) - t[0]) / span * (width - 1))
     cv2.line(panel, (cx, 0), (cx, height - 1), (128, 128, 128), 1)
-    cv2.putText(panel, "sun elevation 0-90 deg", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (200, 200, 200), 1)
+    cv2.putText(panel, "sun: elevation 0-90", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 170, 40), 1)
+    cv2.putText(panel, "azimuth +-180", (150, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (90, 160, 255), 1)
     return panel
 
 
