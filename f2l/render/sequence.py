@@ -5,9 +5,9 @@ same path tracer as the photos (:mod:`f2l.render.scene`, Anny heads, real HDR ma
 skies). What a clip holds:
 
 - a static pinhole camera, 16:9 (``image_px`` on the long side, 1280 → 1280 × 720), horizontal
-  field of view 40–60°; one person whose head (16 cm wide) is 17–30% of the long side (its face
-  box about 15–26% when frontal), the eyes 35–45% from the top, shifted ±12% sideways; the torso
-  reaches below the frame;
+  field of view 40–60°; one person whose head (16 cm wide) is 20–34% of the long side (its face
+  box, cheek to cheek, 0.55–0.8 of that: about 11–27%), the eyes 35–45% from the top, shifted
+  ±12% sideways; the torso reaches below the frame;
 - a head turning and nodding smoothly: yaw(t) = A_y sin(2π t/T + φ_y), one cycle over the clip,
   A_y 35–45°; pitch(t) = A_p sin(4π t/T + φ_p), two nods, A_p 10–15°; a constant roll ±4°. Only
   the head turns (about a pivot 6 cm below and 8 cm behind the eyes); the neck twists, shoulders
@@ -23,7 +23,7 @@ skies). What a clip holds:
   :func:`f2l.render.dataset.expose`); a cloud keeps it (the face darkens). Per frame, shot + read
   noise from a stream of its own, 8-bit sRGB, then the codec's compression (OpenCV's FFmpeg
   ``mp4v``, MPEG-4 part 2 at OpenCV's default bit rate; ``docs/experiments/video_clips.md``
-  measures it: ≈ 1.9 Mbit/s and ≈ 36 dB PSNR at 1280 × 720, and OpenCV's round trip darkens
+  measures it: 2–6 Mbit/s and ≈ 36 dB PSNR at 1280 × 720, and OpenCV's round trip darkens
   by 1–4 codes).
 
 Segment k of clip i draws its light, skin material and noise levels as render-faces' portrait
@@ -125,7 +125,7 @@ def _case_index(index: int, segment: int) -> int:
 
 def _camera_draw(rng: np.random.Generator) -> dict:
     return {"fov_x_deg": round(float(rng.uniform(40.0, 60.0)), 4),
-            "head_width_fraction": round(float(np.exp(rng.uniform(np.log(0.17), np.log(0.30)))), 5),
+            "head_width_fraction": round(float(np.exp(rng.uniform(np.log(0.20), np.log(0.34)))), 5),
             "shift_fraction": round(float(rng.uniform(-0.12, 0.12)), 4),
             "eyes_row_fraction": round(float(rng.uniform(0.35, 0.45)), 4)}
 
