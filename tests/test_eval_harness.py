@@ -233,7 +233,9 @@ def test_evaluate_sun_share_columns_and_overcast_excess(tmp_path):
     result = evaluate_estimates(est_dir, [shards])
     with open(result["per_face_csv"], encoding="utf-8") as f:
         reader = csv.DictReader(f)
-        assert reader.fieldnames[-3:] == ["gt_overcast", "sun_share_est", "sun_share_gt"]
+        at = reader.fieldnames.index("gt_overcast")
+        assert reader.fieldnames[at:at + 3] == ["gt_overcast", "sun_share_est", "sun_share_gt"]
+        assert reader.fieldnames[-3:] == ["sun_cone68_deg", "sun_cone90_deg", "predicted_mae_s"]
         per_face = list(reader)
     assert len(per_face) == 4 and all(r["gt_overcast"] == "True" for r in per_face)
     for r in per_face:

@@ -377,7 +377,7 @@ def write_report(folder: str | os.PathLike, out: str | os.PathLike | None = None
     if (est / "metrics_summary.csv").is_file():
         top += _metrics_section(est, out_dir)
         top += _calibration_section(est, out_dir, uncertainty)
-    from f2l.report.clip import clip_section, is_clip_output
+    from f2l.report.video import clip_section, is_clip_output
 
     if is_clip_output(folder):  # an f2l video output
         top += clip_section(folder, out_dir, thumbs)
