@@ -103,7 +103,7 @@ eval-sessions: $(STAMP)
 # frames at 1280x720, static light, a cloud over the sun or a cut (render-faces --sequence);
 # seed 0 tunes, seed 1 reports. Per clip: Sun-ang against each frame alone as a photo, jitter,
 # settling after a change, the 5.1 metrics and frames/s; then frames/s on 10-second clips (each
-# static clip played back and forth 5 times). About 35 min on 2 cores; the renders are resumable.
+# static clip played back and forth 5 times). About 25 min on 2 cores; the renders are resumable.
 EVAL_VIDEO := build/eval_video
 eval-video: $(STAMP)
 	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 0 --out $(EVAL_VIDEO)/s0 --json

@@ -18,11 +18,12 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    another's leaves (a face seen from several sides constrains the sun).
 3. **Estimate** the window's light. The segment's first light waits (the clip is processed
    offline) for ``cold_faces`` samples, or samples ``cold_span_s`` apart, or the segment's end; it
-   is the full joint estimate (sun search, disagreeing faces left out, elevation profile). Then
-   every ``refit_every`` new samples the window is refitted from the last light
-   (:func:`f2l.estimate.joint.refit_joint`, ``warm_iters`` L-BFGS iterations) under a prior on how
-   fast the sun can move in the camera's frame: ``temporal_weight`` · ½ |s − s_last|² / σ², σ² =
-   σ₀² + (``light_rate_deg_s`` · Δt)². One person's samples share one skin albedo
+   is the full joint estimate (sun search, disagreeing faces left out, elevation profile), and so is
+   the window's light every ``refit_every`` new samples after it. With ``warm_refit`` the later
+   windows are instead refitted from the last light (:func:`f2l.estimate.joint.refit_joint`,
+   ``warm_iters`` L-BFGS iterations) under a prior on how fast the sun can move in the camera's
+   frame: ``temporal_weight`` · ½ |s − s_last|² / σ², σ² = σ₀² + (``light_rate_deg_s`` · Δt)²
+   (faster, but it drifted on long clips). One person's samples share one skin albedo
    (``tie_albedo``): how the same skin brightens and darkens as the head turns is what the frames
    tell about the light.
 4. **Every frame** gets the light of its segment, interpolated in time between the estimates
@@ -68,7 +69,10 @@ class VideoOptions:
     tie_albedo: bool = True  # one skin albedo per person across its samples
     resolution: int = 104  # working px of a sampled face (as a photo's)
     warm_iters: int = 12
-    refit_every: int = 3  # after a segment's first light, refit once so many new samples have come
+    refit_every: int = 6  # after a segment's first light, a new window once so many new samples have come
+    # later windows: full joint estimates (False), or refits from the last light (refit_joint, under
+    # the temporal prior): faster, but on 10 s clips they drifted (docs/experiments/video_estimate.md)
+    warm_refit: bool = False
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
     temporal_sigma_deg: float = 2.0  # sigma_0 of the temporal prior
     temporal_weight: float = 1e-2
@@ -435,7 +439,7 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
         # one person's samples share one skin albedo: how the same skin brightens and darkens as
         # the head turns is what the frames tell about the light
         persons = [s.person for s in window] if options.tie_albedo else None
-        if last is None:
+        if last is None or not options.warm_refit:
             joint = estimate_joint(obs, model, cfg, pixel_rc=rc, albedo_group=persons, share_parts=True)
             result, shares = joint.result, joint.faces
         else:
