@@ -33,6 +33,15 @@ def fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code=code)
 
 
+def require_render_dirs(render_dirs) -> None:
+    """Fail (usage) unless every folder is an ``f2l eval render-faces`` output (it has ``meta/``)."""
+    from pathlib import Path
+
+    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
+    if missing:
+        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+
+
 EXIT_NOTHING_DONE = 1
 """Some inputs failed and none succeeded (the tables and statuses are written all the same)."""
 EXIT_USAGE = 2

@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import JsonOut, fail
+from f2l.cli.common import JsonOut, fail, require_render_dirs
 from f2l.cli.progress import progress_bars
 
 
@@ -234,9 +234,7 @@ def eval_framings_cmd(
     """Accuracy against the face's size: detection, fitting and the §5.1 metrics per band of true face width (40-80, 80-160, 160-320, > 320 px) on framed render sets."""
     from f2l.evaluation.face_width import accuracy_by_face_width
 
-    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
-    if missing:
-        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    require_render_dirs(render_dirs)
     if not (Path(est) / "estimates.parquet").is_file():
         fail(f"{est}: no estimates.parquet")
     result = accuracy_by_face_width(render_dirs, fitted, est)
@@ -260,9 +258,7 @@ def eval_groups_cmd(
     """Error against the number of faces: each photo's first n faces estimated one at a time and jointly (one light), scored against the true probe (§5.1 metrics), with the time of each."""
     from f2l.evaluation.groups import group_rows, group_table, write_group_report
 
-    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
-    if missing:
-        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    require_render_dirs(render_dirs)
     rows = group_rows(render_dirs, fitted, model, tuple(sizes),
                       progress=None if json_out else (lambda r: typer.echo(
                           f"{r['case']} n={r['n']}: Sun-ang {r['single'][0]:.1f} -> {r['joint'][0]:.1f}", err=True)))
@@ -281,8 +277,7 @@ def eval_sessions_cmd(
     """Sessions (several photos, one light, known camera headings): each face estimated alone against its photo's true probe, and the session jointly in the first photo's frame against that photo's (§5.1 metrics), with the time of each."""
     from f2l.evaluation.sessions import session_rows, session_table, tag_records, write_session_report
 
-    if not (Path(render_dir) / "meta").is_dir():
-        fail(f"not a render-faces folder (no meta/): {render_dir}")
+    require_render_dirs([render_dir])
     if tag is not None:
         typer.echo(f"tagged {tag_records(render_dir, fitted, tag)} records in {tag}", err=True)
     rows = session_rows(render_dir, fitted, model,
@@ -305,9 +300,7 @@ def eval_shade_cmd(
     """A face in an occluder's shadow: how often the joint estimate leaves it out, and the §5.1 metrics of the joint estimate with the check on, without that face, and with the check off."""
     from f2l.evaluation.shade import shade_rows, shade_table, write_shade_report
 
-    missing = [str(d) for d in render_dirs if not (Path(d) / "meta").is_dir()]
-    if missing:
-        fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+    require_render_dirs(render_dirs)
     rows = shade_rows(render_dirs, fitted, model,
                       progress=None if json_out else (lambda r: typer.echo(
                           f"{r['case']}: shaded face flagged {r['flagged']}, agreements {r['agreements']}", err=True)))

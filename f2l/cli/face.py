@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from f2l.cli.common import Grid, JsonOut, exit_for, fail, parse_grid
+from f2l.cli.common import Grid, JsonOut, exit_for, fail, parse_grid, require_render_dirs
 from f2l.cli.progress import progress_bars
 
 
@@ -139,9 +139,7 @@ def bench_detect_cmd(
     except (RuntimeError, ValueError) as exc:
         fail(str(exc))
     if rendered:
-        missing = [str(p) for p in rendered if not (Path(p) / "meta").is_dir()]
-        if missing:
-            fail(f"not a render-faces folder (no meta/): {', '.join(missing)}")
+        require_render_dirs(rendered)
         result["rendered"] = rendered_recall(rendered, min_face_px=min_face_px, detector=detector)
     if json_out:
         typer.echo(json.dumps(result))
