@@ -10,6 +10,7 @@ into wide, two-person and group framings. The astronaut's detected face box at 5
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -182,6 +183,57 @@ def test_a_group_photo_gives_a_record_or_a_reason_per_face(group_photo, tmp_path
     canvas, truths = group_photo
     row, _, _ = fit_faces_of(canvas, truths, tmp_path, "group")
     assert len(row["face_ids"]) >= len(truths) - 1
+
+
+APOLLO11 = Path(__file__).parent / "data" / "real_photos" / "apollo11_crew.jpg"
+# The crew's faces (Aldrin, Collins, Armstrong), boxes labelled by hand on the 600 x 471 photo.
+APOLLO11_FACES = np.array([[404.0, 180.0, 456.0, 234.0], [263.0, 88.0, 315.0, 141.0], [126.0, 173.0, 178.0, 227.0]])
+
+
+@pytest.fixture(scope="module")
+def apollo11():
+    return np.asarray(Image.open(APOLLO11).convert("RGB"))
+
+
+def test_a_real_group_photo_finds_every_face(landmarker, apollo11):
+    """The Apollo 11 crew's portrait (NASA, public domain): three people, faces 54 px wide."""
+    faces, matched = _found(landmarker, apollo11, APOLLO11_FACES)
+    assert sorted(matched) == [0, 1, 2] and len(faces) == 3, [f.detection.box for f in faces]
+
+
+@pytest.mark.parametrize("scale", [0.75, 0.7])
+def test_a_real_group_photo_framed_wide_and_small_finds_every_face(landmarker, apollo11, scale):
+    """The same photo shrunk and placed off-centre on a 2000 x 1600 canvas: faces 37-42 px, 2% of
+    the frame's long side (a group shot framed wide)."""
+    h, w = apollo11.shape[:2]
+    small = np.asarray(Image.fromarray(apollo11).resize((round(w * scale), round(h * scale)),
+                                                        Image.Resampling.LANCZOS))
+    canvas = np.full((1600, 2000, 3), 40, np.uint8)
+    canvas[900:900 + small.shape[0], 1300:1300 + small.shape[1]] = small
+    truths = APOLLO11_FACES * scale * small.shape[1] / (w * scale) + [1300, 900, 1300, 900]
+    faces, matched = _found(landmarker, canvas, truths)
+    assert sorted(matched) == [0, 1, 2] and len(faces) == 3, [f.detection.box for f in faces]
+
+
+def test_a_real_group_photo_gives_a_record_or_a_reason_per_face(apollo11, tmp_path):
+    row, rejected, records = fit_faces_of(apollo11, APOLLO11_FACES, tmp_path, "apollo11_crew")
+    assert len(records) == 3 and not rejected
+
+
+def test_a_real_group_photo_gives_a_light_per_face(tmp_path):
+    """`f2l estimate photo.jpg -m sunsky`: the photo's faces share one light, and each face has a row."""
+    import pyarrow.parquet as pq
+    from typer.testing import CliRunner
+
+    from f2l.cli import app
+
+    res = CliRunner().invoke(app, ["estimate", str(APOLLO11), "-m", "sunsky", "--out", str(tmp_path / "est"),
+                                   "--json"])
+    assert res.exit_code == 0, res.output
+    rows = pq.read_table(tmp_path / "est" / "estimates.parquet").to_pylist()
+    assert sorted(r["face_id"].rsplit("-", 1)[1] for r in rows) == ["f0", "f1", "f2"], rows
+    assert all(r["status"] == "ok" and np.all(np.isfinite(r["sun_direction"])) for r in rows), rows
+    assert all((tmp_path / "est" / r["probe_path"]).is_file() for r in rows)
 
 
 @pytest.mark.parametrize("name", ["coffee", "chelsea", "rocket", "stereo_motorcycle", "hubble_deep_field"])
