@@ -180,6 +180,12 @@ class EstimatorConfig:
                                       "The skin's reflection of sky, sun and ground about the mirror direction (sun models; 0 = off).")
     skin_reflection_exponent: float = _setting(16.0, 'skin',
                                                "Phong exponent of the skin's reflection lobe.")
+    # sun models (compact-sun): write the probe with its sun spread over the sun direction's posterior,
+    # a vMF whose 68% radius is this multiple of the face's calibrated sun_cone68_deg (energy and
+    # centre kept; f2l.estimate.sun_spread); 0 = the sharp sun as fitted. Parameters unchanged.
+    # docs/experiments/sun_spread.md.
+    sun_spread: float = _setting(0.0, 'sun',
+                                 "Spread the probe's sun over this multiple of its 68% direction cone (0: the sharp sun).")
 
 
 @dataclass
@@ -199,3 +205,4 @@ class EstimateResult:
     num_pixels_used: int = 0
     specular_ks: float | None = None  # the sun highlight's k_s (EstimatorConfig.sun_specular), else None
     sun_uncertainty: object | None = None  # f2l.estimate.uncertainty.SunUncertainty (compact-sun models), else None
+    sun_spread_kappa: float | None = None  # the probe's spread sun's kappa (EstimatorConfig.sun_spread), None: sharp

@@ -28,6 +28,7 @@ from f2l.estimate.problem import FaceProblem
 from f2l.estimate.skin import _albedo_gmm_terms, albedo_prior_nll, skin_albedo_gmm, skin_albedo_mean
 from f2l.estimate import sun_search
 from f2l.estimate.sun_profile import elevation_posterior
+from f2l.estimate.sun_spread import spread_sky_radiance
 from f2l.estimate.uncertainty import sun_uncertainty
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
@@ -173,17 +174,6 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
             best, weights, sun_direction, profile_dirs = post.best, post.weights, post.sun_direction, post.directions
         profile_s = time.perf_counter() - t_profile
 
-    with torch.no_grad():
-        chosen = [best] if weights is None else list(range(len(totals)))
-        rads = prob.radiance(params[chosen]).clone()
-        if prob.sky:
-            e_h = (prob.e_sky[None, :, None] * rads[:, : prob.L_sky]).sum(1)
-            rads[:, prob.L_sky :] = rho_g[chosen][:, None, None] / np.pi * e_h[:, None, :]
-        rads = rads.clamp_min(0.0)
-        rad = rads[0] if weights is None else torch.einsum("b,blc->lc", torch.as_tensor(weights, dtype=rads.dtype), rads)
-    probe = rad.numpy().reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
-    if not np.isfinite(probe).all():
-        raise EstimationError("estimated probe is not finite")
     best_params = params[best : best + 1]
     best_np = best_params[0].numpy().astype(np.float64)
     if sun_direction is None:
@@ -193,6 +183,22 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         sun_direction, prob.grid.directions_flat[scores.texels], scores.total, scores.yy,
         np.asarray(obs.normals)[np.asarray(obs.mask, bool)], sun_core == 0.0, profile_dirs, weights)
     uncertainty_s = time.perf_counter() - t_uncertainty
+    spread_kappa = None
+    with torch.no_grad():
+        chosen = [best] if weights is None else list(range(len(totals)))
+        rads = prob.radiance(params[chosen]).clone()
+        if cfg.sun_spread > 0 and uncertainty is not None and sun_core > 0:  # f2l.estimate.sun_spread
+            radius = np.radians(cfg.sun_spread * uncertainty.cone68_deg)
+            rads[:, : prob.L_sky], kappas = spread_sky_radiance(model, params[chosen], radius)
+            spread_kappa = float(kappas[0 if weights is None else chosen.index(best)])
+        if prob.sky:
+            e_h = (prob.e_sky[None, :, None] * rads[:, : prob.L_sky]).sum(1)
+            rads[:, prob.L_sky :] = rho_g[chosen][:, None, None] / np.pi * e_h[:, None, :]
+        rads = rads.clamp_min(0.0)
+        rad = rads[0] if weights is None else torch.einsum("b,blc->lc", torch.as_tensor(weights, dtype=rads.dtype), rads)
+    probe = rad.numpy().reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
+    if not np.isfinite(probe).all():
+        raise EstimationError("estimated probe is not finite")
     runtime = time.perf_counter() - t_start
     return EstimateResult(
         params=best_np,
@@ -211,6 +217,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         num_pixels_used=int(prob.idx.size),
         specular_ks=float(ks[best]) if ks is not None else None,
         sun_uncertainty=uncertainty,
+        sun_spread_kappa=spread_kappa,
     )
 
 

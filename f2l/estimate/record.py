@@ -170,7 +170,8 @@ def write_result(row: dict, result, scale: float | None, scale_source: str, mode
                         else "cd/m2 (Rec.709 Y of the RGB is the luminance)",
                         "f2l_absolute_scale_cd_m2": "" if scale is None else repr(float(scale)),
                         "f2l_absolute_scale_source": scale_source,
-                        **{f"f2l_{k}": "" if v is None else repr(v) for k, v in uncertainty.items()}})
+                        **{f"f2l_{k}": "" if v is None else repr(v) for k, v in uncertainty.items()},
+                        **spread_header(result)})
     save_png(Path(out_dir) / preview_rel, tonemap(probe))
     row.update(
         params=[float(v) for v in result.params],
@@ -200,6 +201,14 @@ def uncertainty_columns(result) -> dict:
         return dict(UNCERTAINTY_DEFAULTS)
     return {"sun_cone68_deg": float(u.cone68_deg), "sun_cone90_deg": float(u.cone90_deg),
             "predicted_mae_s": float(u.predicted_mae_s)}
+
+
+def spread_header(result) -> dict:
+    """EXR header keys of a probe whose sun is spread over its direction posterior
+    (f2l.estimate.sun_spread): the written lobe's kappa; none for the sharp sun as fitted."""
+    kappa = getattr(result, "sun_spread_kappa", None)
+    return {} if kappa is None else {"f2l_sun_lobe": "spread over the sun direction's posterior",
+                                     "f2l_sun_spread_kappa": repr(float(kappa))}
 
 
 def record_absolute_scale(record) -> tuple[float | None, str]:
