@@ -61,7 +61,8 @@ bench-faces: $(STAMP)
 # Real framings, path-traced (f2l/render/framing.py): 30 half-body, 30 full-body and 40 group photos (2-5
 # people; ~200 faces) at 1280 px and 16 spp; detection recall by face width and framing (bench-detect
 # --rendered), then fit, estimate (sunsky) and the accuracy-against-face-size table (eval-framings,
-# f2l/evaluation/face_width.py; docs/experiments/face_detection.md). ~60 min on 2 cores; resumable.
+# f2l/evaluation/face_width.py; docs/results/framings.md), with each photo's faces sharing a light (the default) and
+# each face alone (--joint none, in $(EVAL_FRAMINGS)/alone). ~60 min on 2 cores; resumable.
 EVAL_FRAMINGS := build/eval_framings
 eval-framings: $(STAMP)
 	$(BIN)/f2l eval render-faces --framing half --out $(EVAL_FRAMINGS)/half --n 30 --seed 0 --image-px 1280 --spp 16 --json
@@ -74,6 +75,9 @@ eval-framings: $(STAMP)
 	$(BIN)/f2l estimate $(EVAL_FRAMINGS)/fitted -m sunsky --out $(EVAL_FRAMINGS)/est --json
 	$(BIN)/f2l eval framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
 		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est --out $(EVAL_FRAMINGS)
+	$(BIN)/f2l estimate $(EVAL_FRAMINGS)/fitted -m sunsky --joint none --out $(EVAL_FRAMINGS)/est_alone --json
+	$(BIN)/f2l eval framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
+		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est_alone --out $(EVAL_FRAMINGS)/alone
 
 # One light for many faces (f2l.estimate.joint; docs/experiments/joint_estimate.md): 40 path-traced group
 # photos (2-5 people under one light) on seed 0 to tune on and 40 on seed 1 to report on, fitted, then each
