@@ -151,7 +151,7 @@ eval-ae: $(STAMP)
 	for m in sh9 sh25 sunsky ae; do \
 		$(BIN)/f2l eval fit-probe $(EVAL_AE)/corpus/heldout --model $$m --out $(EVAL_AE)/table1/$$m || exit 1; \
 	done
-	$(BIN)/f2l eval synth --out $(EVAL_AE)/faces --n 24 --seed 11 --json
+	$(BIN)/f2l eval synth --out $(EVAL_AE)/faces --n 24 --seed 11 --lambertian --json
 	$(BIN)/f2l estimate $(EVAL_AE)/faces -m sh9 -m sh25 -m sunsky -m ae --skin-gloss 0 --out $(EVAL_AE)/est --json
 	$(BIN)/f2l evaluate $(EVAL_AE)/est
 
@@ -160,9 +160,9 @@ eval-ae: $(STAMP)
 # f2l's own renders are Lambertian: read them so (--skin-gloss 0; the default is for real skin).
 EVAL_SUNSKY := build/eval_sunsky
 eval-sunsky: $(STAMP)
-	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 \
+	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 --lambertian \
 		--sun-elevation-deg 10:70 --capture --json
-	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --json
+	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --lambertian --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --no-sun-prior --skin-gloss 0 --out $(EVAL_SUNSKY)/est_sunny --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sunsky --skin-gloss 0 --out $(EVAL_SUNSKY)/est_sunny_exif --json
 	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --skin-gloss 0 --out $(EVAL_SUNSKY)/est_overcast --json
@@ -176,7 +176,7 @@ eval-sunsky: $(STAMP)
 # The photos are Lambertian: read them so (--skin-gloss 0).
 EVAL_FIT := build/eval_fit_faces
 eval-fit-faces: $(STAMP)
-	$(BIN)/f2l eval synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features \
+	$(BIN)/f2l eval synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features --lambertian \
 		--overcast-fraction 0 --sun-elevation-deg 10:70 --json
 	$(BIN)/f2l fit-faces $(EVAL_FIT)/truth/photos --out $(EVAL_FIT)/fitted \
 		--gt-probes $(EVAL_FIT)/truth/probes --json

@@ -1,8 +1,8 @@
 """``f2l demo``: the README's end-to-end example on a small embedded synthetic set.
 
-synth (n faces under known skies) -> estimate with every built-in model -> evaluate (§5.1 table)
--> pictures: a contact sheet per face (photo | ground-truth probe | each estimate) and the
-evaluation scene relit by each probe.
+synth (n faces with glossy skin, as in users' photos, under known skies) -> estimate with every
+built-in model -> evaluate (§5.1 table) -> pictures: a contact sheet per face (photo | ground-truth
+probe | each estimate) and the evaluation scene relit by each probe.
 """
 
 from __future__ import annotations
@@ -29,10 +29,11 @@ def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = N
     models = models or builtin_models()
     shards = out / "shards"
     est_dir = out / "estimates"
-    echo(f"[1/4] synthesising {n} faces under known skies -> {shards}")
+    echo(f"[1/4] synthesising {n} faces (glossy skin) under known skies -> {shards}")
     from f2l.lighting.grid import LatLongGrid
 
-    synth_summary = write_synthetic_shards(shards, n=n, seed=seed, grid=grid or LatLongGrid(), image_size=image_size)
+    synth_summary = write_synthetic_shards(shards, n=n, seed=seed, grid=grid or LatLongGrid(), image_size=image_size,
+                                          gloss=True)
     echo(json.dumps(synth_summary))
     echo(f"[2/4] estimating with {', '.join(models)} -> {est_dir}")
     est_summary = run_estimates([shards], models=models, out_dir=est_dir)
@@ -47,7 +48,7 @@ def run_demo(out: Path, n: int = 12, seed: int = 0, models: list[str] | None = N
     echo(f"tables: {result['summary_md']}, {result['summary_csv']}, {result['per_face_csv']}")
     from f2l.report.build import write_report
 
-    report = write_report(out, title=f"f2l demo: {n} synthetic faces (own renders)")
+    report = write_report(out, title=f"f2l demo: {n} synthetic faces (own renders, glossy skin)")
     echo(f"report: {report.pages[0]} (open it in a browser)")
     return {"synth": synth_summary, "estimate": est_summary, "markdown": result["markdown"], "pictures": pictures,
             "report": report.pages[0]}

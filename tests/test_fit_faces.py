@@ -290,7 +290,7 @@ def test_fit_face_rejects_too_small(grey_photo):
 def synth_truth(tmp_path_factory):
     truth = tmp_path_factory.mktemp("truth")
     res = invoke("eval", "synth", "--out", truth, "--n", 2, "--seed", 7, "--image-size", 192, "--features",
-                 "--overcast-fraction", 0, "--grid", GRID, "--json")
+                 "--lambertian", "--overcast-fraction", 0, "--grid", GRID, "--json")
     assert res.exit_code == 0, res.output
     assert json.loads(res.stdout)["faces"] == 2
     return truth

@@ -32,7 +32,13 @@ def synth(
         0.002, help="Sensor noise sigma (linear units), added before the photo is quantised to 8 bits; "
                     "observed pixels are the decoded 8-bit codes.",
     ),
-    specular: float = typer.Option(0.0, help="Strength of an optional specular highlight."),
+    lambertian: bool = typer.Option(
+        False, "--lambertian",
+        help="Lambertian skin (the estimator's own forward model, for regression checks). Default: glossy skin, "
+             "the GGX highlight of the whole probe with roughness 0.3-0.7 and F0 0.028-0.048 drawn per face "
+             "(meta 'gloss'); sky, pose, albedo and noise of a seed are the same either way."),
+    specular: float = typer.Option(0.0, help="Strength of an extra Blinn-Phong highlight of the sun alone "
+                                             "(0 = none), on top of the gloss."),
     visibility: str = typer.Option("adaptive", help="Visibility method: adaptive or exact."),
     capture: bool = typer.Option(
         False, "--capture/--no-capture",
@@ -44,7 +50,8 @@ def synth(
              "checks); the records' masks then keep skin only."),
     json_out: JsonOut = False,
 ) -> None:
-    """Render synthetic faces under known probes into shards (ground truth included)."""
+    """Render synthetic faces under known probes into shards (ground truth included); glossy skin
+    unless --lambertian."""
     from f2l.synth.dataset import write_synthetic_shards
     from f2l.synth.skies import parse_elevation_range
 
@@ -56,7 +63,7 @@ def synth(
         summary = write_synthetic_shards(
             out, n=n, seed=seed, grid=_grid(grid), image_size=image_size, overcast_fraction=overcast_fraction,
             noise_sigma=noise, specular=specular, visibility_method=visibility, progress=progress,
-            sun_elevation_range_deg=elevation_range, capture_meta=capture, features=features,
+            sun_elevation_range_deg=elevation_range, capture_meta=capture, features=features, gloss=not lambertian,
         )
     typer.echo(json.dumps(summary, indent=None if json_out else 2))
 

@@ -60,7 +60,8 @@ def write_synthetic_shards(
     """Render ``n`` faces into the shard directory ``out``; returns a summary dict.
 
     ``render_options`` go to :func:`f2l.synth.render.make_synthetic_set` (image_size,
-    overcast_fraction, specular, visibility_method, threads, albedo, sun_elevation_range_deg);
+    overcast_fraction, specular, visibility_method, threads, albedo, sun_elevation_range_deg,
+    features, gloss: False, the default, renders Lambertian skin, True glossy skin drawn per face);
     the sensor noise defaults to 0.002 here, as a photo has some. The noise is added to the
     linear image before it is sRGB-encoded and rounded to 8 bits, and the records' observed
     pixels are the decoded 8-bit codes. ``capture_meta`` gives each clear-sky record a

@@ -12,7 +12,9 @@ so the world frame is the camera frame and probes need no rotation.
 
 Shading (paper §3): s = albedo ⊙ (T l), T[p, w] = (1/pi) V(p, w) max(0, <n_p, w>) dw, with V the
 binary mesh visibility of :func:`f2l.transport.visibility.compute_visibility` and l the probe
-flattened row-major (L, 3). Optional specular: normalised Blinn-Phong toward the sun,
+flattened row-major (L, 3). Optional gloss (``gloss``): the GGX microfacet highlight of the whole
+probe with the same visibility, uncoloured by the skin (:func:`f2l.synth.gloss.glossy_highlight`),
+added to every face pixel. Optional legacy specular: normalised Blinn-Phong toward the sun,
 k_s (m + 8) / (8 pi) <n, h>^m <n, w_sun> E_sun V_sun (one shadow ray), added untinted.
 
 Photo: linear image × exposure_scale (the 98th percentile of the face's linear values maps to
@@ -32,6 +34,7 @@ import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
 from f2l.face.mesh import face_mesh
+from f2l.synth.gloss import SkinGloss
 
 FOV_DEG = 19.0  # face (~16 x 18 cm at 60 cm) fills ~half the frame: N ~ 8-9k px at 128^2
 FACE_DISTANCE_CM = 60.0
@@ -268,13 +271,17 @@ def render_face(
     threads: int = 2,
     sky_info: dict | None = None,
     features: bool = False,
+    gloss: SkinGloss | None = None,
 ) -> SyntheticFace:
     """Render the canonical face under ``probe`` (H, W, 3 linear radiance on ``grid``).
 
     Random draws from ``rng``, in order: pose (yaw, pitch, roll ~ U[-20, 20] deg) unless
     ``head_pose_deg`` is given, albedo (``f2l.estimate.skin.sample_skin_albedo``) unless given,
-    then the noise. ``specular`` = k_s of the Blinn-Phong sun highlight (0 = Lambertian only);
-    its sun is ``sun_direction`` or the probe's brightest sky texel. ``sky_info`` is copied into
+    then the noise. ``gloss`` (:class:`f2l.synth.gloss.SkinGloss`, None = Lambertian skin) adds
+    the GGX highlight of the whole probe and is recorded in ``meta['gloss']`` (roughness, f0); it
+    draws nothing from ``rng``, so a face with and without it differs only by the highlight.
+    ``specular`` = k_s of an extra Blinn-Phong sun highlight (0 = none); its sun is
+    ``sun_direction`` or the probe's brightest sky texel. ``sky_info`` is copied into
     ``meta['sky']``. ``features`` paints eyes (sclera and iris), brows, lips and nostrils into
     the albedo (:func:`paint_features`), so that a face detector finds the photo; the record's
     mask then keeps only skin (:func:`f2l.face.regions.skin_regions` on the true landmarks) and
@@ -323,6 +330,11 @@ def render_face(
 
         skin = skin_regions(landmarks_xy, pix_xy)["skin"]
     shading = albedo_px * _transport_matmul(vis_all, normals, grid, l_flat, threads)
+    if gloss is not None:
+        from f2l.synth.gloss import glossy_highlight
+
+        shading = shading + glossy_highlight(normals, points, vis_all, grid, probe, gloss.roughness, gloss.f0,
+                                             dtype=np.float32)
 
     if specular > 0.0:
         sun_dir, e_sun = _sun_from_probe(grid, probe)
@@ -380,6 +392,8 @@ def render_face(
         num_masked=int(mask.sum()),
         grid=[grid.height, grid.width],
     )
+    if gloss is not None:
+        meta["gloss"] = gloss.to_meta()
     if landmarks_xy is not None:
         meta["landmarks_xy"] = np.round(landmarks_xy, 3).tolist()
     return SyntheticFace(
@@ -401,6 +415,16 @@ def render_face(
     )
 
 
+GLOSS_SPAWN_KEY = 1  # the gloss generator's seed: SeedSequence(face seed's entropy, spawn_key + (1,))
+
+
+def _drawn_gloss(face_seed: np.random.SeedSequence) -> SkinGloss:
+    from f2l.synth.gloss import sample_skin_gloss
+
+    seq = np.random.SeedSequence(face_seed.entropy, spawn_key=tuple(face_seed.spawn_key) + (GLOSS_SPAWN_KEY,))
+    return sample_skin_gloss(np.random.default_rng(seq))
+
+
 def make_synthetic_set(
     n: int,
     grid: LatLongGrid,
@@ -414,6 +438,7 @@ def make_synthetic_set(
     albedo=None,
     sun_elevation_range_deg: tuple[float, float] | None = None,
     features: bool = False,
+    gloss: bool | SkinGloss = False,
 ) -> Iterator[SyntheticFace]:
     """Yield ``n`` synthetic faces, each under a :func:`~f2l.synth.skies.random_sky`.
 
@@ -422,6 +447,11 @@ def make_synthetic_set(
     every face) and noise; meta gains ``index`` and ``seed``. ``sun_elevation_range_deg``
     (min, max) restricts the clear skies' sun elevation (None: the default [5, 80] deg); it
     rescales one draw, so the random stream, and with the default range the output, is unchanged.
+    ``gloss``: False (the library default) renders Lambertian skin, the estimator's own forward
+    model; True gives every face (clear or overcast) glossy skin with roughness and F0 drawn by
+    :func:`f2l.synth.gloss.sample_skin_gloss` from a generator of its own (GLOSS_SPAWN_KEY under
+    the face's seed), so sky, pose, albedo and noise are those of the Lambertian face; a
+    :class:`~f2l.synth.gloss.SkinGloss` gives every face that gloss.
     """
     from f2l.synth.skies import SUN_ELEVATION_RANGE_DEG, check_elevation_range, random_sky
 
@@ -432,6 +462,7 @@ def make_synthetic_set(
     children = np.random.SeedSequence(int(seed)).spawn(int(n))
     for i, child in enumerate(children):
         rng = np.random.default_rng(child)
+        face_gloss = gloss if isinstance(gloss, SkinGloss) else (_drawn_gloss(child) if gloss else None)
         probe, info = random_sky(
             grid, rng, overcast_fraction=overcast_fraction, sun_elevation_range_deg=elev_range
         )
@@ -449,6 +480,7 @@ def make_synthetic_set(
             threads=threads,
             sky_info=info,
             features=features,
+            gloss=face_gloss,
         )
         face.meta["index"] = i
         face.meta["seed"] = int(seed)
