@@ -113,7 +113,7 @@ def _accumulate(out, n, v, n_dot_v_raw, n_dot_v, bits, order, dirs_t, light, alp
         lit = np.unpackbits(bits[rows], axis=1, count=size, bitorder="little").view(bool)
         lit &= n_dot_l > 0.0
         cols = np.flatnonzero(lit.any(0))
-        lit, n_dot_l = lit[:, cols], n_dot_l[:, cols]
+        lit, n_dot_l = np.take(lit, cols, axis=1), np.take(n_dot_l, cols, axis=1)  # C order (x[:, cols] is F)
         # t = |ω + v|² = 2 + 2 v·ω, 0 only at ω = −v, where h is undefined (and n·ω = −n·v < 0 is dark)
         t = v[rows].astype(dt) @ dirs_t[:, cols]
         v_dot_h = t + one  # (v·ω + 1), divided by |ω + v| below
