@@ -238,3 +238,15 @@ def test_cli_synth_is_glossy_unless_lambertian(tmp_path):
         assert np.array_equal(a.observed_rgb, b.observed_rgb) and np.array_equal(a.visibility_bits, b.visibility_bits)
         assert a.meta == b.meta
         assert np.array_equal(a.pixel_rc, c.pixel_rc) and not np.array_equal(a.observed_rgb, c.observed_rgb)
+
+
+def test_the_demo_renders_glossy_faces(tmp_path):
+    from f2l.demo import run_demo
+    from f2l.io.shards import iter_records
+
+    result = run_demo(tmp_path, n=2, seed=3, models=["sh9"], echo=lambda *_: None, grid=LatLongGrid(16, 32),
+                      image_size=48)
+    assert "MAE (s)" in result["markdown"]
+    records = list(iter_records(tmp_path / "shards"))
+    assert len(records) == 2 and all(ROUGHNESS_RANGE[0] <= r.meta["gloss"]["roughness"] <= ROUGHNESS_RANGE[1]
+                                     for r in records)
