@@ -79,18 +79,27 @@ CASES = [(8192.0, 0.0, 0.0), (8192.0, 45.0, 1e-4), (8192.0, 90.0, 4.0), (8192.0,
          (1024.0, 0.0, 4.0), (1024.0, 45.0, 90.0), (8.0, 90.0, 1e-4), (8.0, 3.0, 25.0), (8.0, 45.0, 90.0)]
 
 
+@pytest.mark.parametrize("horizon", ss.HORIZONS)
 @pytest.mark.parametrize("kappa,elevation_deg,cone_deg", CASES)
-def test_the_spread_keeps_the_suns_energy(sunsky, kappa, elevation_deg, cone_deg):
+def test_the_spread_keeps_the_suns_energy(sunsky, kappa, elevation_deg, cone_deg, horizon):
+    from f2l.lighting.sun_lobe import sun_lobe
+
     grid = sunsky.grid
+    t = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
+    args = (t(math.radians(90.0 - elevation_deg)), t(math.radians(70.0)), t(kappa))
+    lobe, kappas = ss.spread_lobe(grid, *args, math.radians(cone_deg), horizon)
+    sharp = sun_lobe(grid, *args, n_rows=lobe.shape[1] // grid.width)  # over the same rows
+    assert torch.isfinite(lobe).all() and (lobe >= 0).all()
+    assert 0 < kappas[0] <= kappa
+    sa = torch.tensor(grid.solid_angles_flat[: lobe.shape[1]])
+    assert float(lobe[0] @ sa) == pytest.approx(float(sharp[0] @ sa), rel=1e-9)
+    # the probe's sky rows: the sharp lobe's energy there (renormalise) or at most its full one (drop)
     params = sunsky_params(sunsky, elevation_deg, 70.0, kappa)
     p = torch.as_tensor(params[None], dtype=torch.float64)
-    sharp = sunsky.radiance(p)[:, : grid.sky_rows * grid.width]
-    spread, kappas = ss.spread_sky_radiance(sunsky, p, math.radians(cone_deg))
-    assert torch.isfinite(spread).all() and (spread >= 0).all()
-    assert 0 < kappas[0] <= kappa
-    sa = grid.solid_angles_flat[: grid.sky_rows * grid.width]
-    e_sharp, e_spread = (sun_part(sunsky, params, r) @ sa for r in (sharp, spread))
-    assert e_spread == pytest.approx(e_sharp, rel=1e-9)
+    upper, _ = ss.spread_sky_radiance(sunsky, p, math.radians(cone_deg), horizon)
+    assert torch.isfinite(upper).all() and (upper >= 0).all()
+    e_sky = sun_part(sunsky, params, upper) @ sa[: upper.shape[1]].numpy()
+    assert e_sky <= float(lobe[0] @ sa) * (1 + 1e-9)
 
 
 def test_the_spread_keeps_the_models_sky(sunsky):
@@ -197,3 +206,33 @@ def test_an_overcast_fit_is_not_spread():
     on = estimate(obs, model, EstimatorConfig(**cfg, sun_spread=1.0))
     assert off.timings["sun_core"] == 0.0 and on.sun_spread_kappa is None
     np.testing.assert_array_equal(on.probe, off.probe)
+
+
+def full_sphere_energy(grid, elevation_deg: float, kappa: float) -> float:
+    from f2l.lighting.sun_lobe import sun_lobe_sparse
+
+    t = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
+    vals, flat = sun_lobe_sparse(grid, t(math.radians(90.0 - elevation_deg)), t(math.radians(70.0)), t(kappa))
+    return float((vals[0] * torch.tensor(grid.solid_angles_flat)[flat[0]]).sum())
+
+
+@pytest.mark.parametrize("elevation_deg", [0.0, 5.0, 80.0])
+def test_the_horizon_either_drops_or_renormalises_the_part_below_it(sunsky, elevation_deg):
+    grid = sunsky.grid
+    params = sunsky_params(sunsky, elevation_deg, 70.0, 6000.0)
+    p = torch.as_tensor(params[None], dtype=torch.float64)
+    cone = math.radians(20.0 if elevation_deg < 45.0 else 10.0)  # 80 deg, 10 deg: below e^-60 under the horizon
+    kept = sun_part(sunsky, params, ss.spread_sky_radiance(sunsky, p, cone, "renormalise")[0])
+    dropped = sun_part(sunsky, params, ss.spread_sky_radiance(sunsky, p, cone, "drop")[0])
+    sharp = sun_part(sunsky, params, sunsky.radiance(p)[:, : grid.sky_rows * grid.width])
+    sa = grid.solid_angles_flat[: kept.size]
+    assert kept @ sa == pytest.approx(sharp @ sa, rel=1e-9)  # the sharp lobe's energy above the horizon
+    if elevation_deg == 0.0:  # half of either lobe is below the horizon
+        assert dropped @ sa == pytest.approx(0.5, abs=0.01) and kept @ sa == pytest.approx(0.5, abs=0.01)
+    elif elevation_deg == 5.0:  # the sharp lobe is all above, the spread one partly below
+        assert 0.5 < dropped @ sa < 0.8 < kept @ sa
+    else:  # far above the horizon: both hold the sharp lobe's full energy
+        assert dropped @ sa == pytest.approx(full_sphere_energy(grid, elevation_deg, 6000.0), rel=1e-9)
+        np.testing.assert_allclose(dropped, kept, rtol=1e-6, atol=1e-9 * kept.max())
+    with pytest.raises(ValueError):
+        ss.spread_sky_radiance(sunsky, p, cone, "fold")

@@ -19,12 +19,15 @@ Each sun of the probe (its profile mixture's components too) is rewritten as tha
 (``f2l.lighting.sun_lobe``) with
 
 - its centre (the sun's direction) unchanged, and the estimate's parameters unchanged;
-- its energy in the probe exactly the sharp lobe's there (the sum of texel means x solid angles
-  over the sky rows), which also removes the lobe quadrature's ~3e-4 error;
-- the part of the spread lobe below the horizon dropped and the rest renormalised to that energy:
-  the true sun is above the horizon, so the posterior truncated to the upper hemisphere is the
-  right one, and a lobe much narrower than the posterior convolved with it is, to first order, the
-  spread lobe restricted to the upper hemisphere and renormalised.
+- its energy over the whole sphere exactly the sharp lobe's there (the sum of texel means x solid
+  angles, so the lobe quadrature's ~3e-4 error cancels too);
+- its part below the horizon dropped (``HORIZON = "drop"``): the probe's lower rows are the ground
+  model's, and the posterior's mass below the horizon stands for the outcomes with no direct sun.
+  A sun near the horizon with a wide cone thus loses up to half its energy. The alternative,
+  "renormalise" (the part above the horizon scaled to the sharp lobe's energy there: the
+  posterior truncated to the upper hemisphere), lifts a near-horizon sun's whole energy into the
+  sky, where it lights the ground plane of the relit scene; on the tuning part of ``eval real``
+  it gave the same Full-dω and a worse MAE (s) (docs/experiments/sun_spread.md).
 
 A 68% radius above ~111 deg (a uniform sphere already holds 68% there) gets the widest lobe,
 ``KAPPA_MIN``. Overcast fits (no sun core) and models without a compact sun are not spread.
@@ -40,15 +43,17 @@ import numpy as np
 import torch
 from scipy.optimize import brentq
 
-from f2l.lighting.sun_lobe import sun_lobe
+from f2l.lighting.sun_lobe import sun_lobe, sun_lobe_sparse
 from f2l.models.capabilities import KAPPA_RANGE
 
-__all__ = ["LEVEL", "KAPPA_MIN", "KAPPA_MAX", "mean_cosine", "kappa_for_radius", "convolved_kappa",
-           "spread_sky_radiance"]
+__all__ = ["LEVEL", "KAPPA_MIN", "KAPPA_MAX", "HORIZONS", "HORIZON", "mean_cosine", "kappa_for_radius", "convolved_kappa",
+           "spread_lobe", "spread_sky_radiance"]
 
 LEVEL = 0.68  # the cone's credibility: sun_cone68_deg
 KAPPA_MIN = 1e-6  # the widest spread lobe (uniform over the sphere to 1e-6)
 KAPPA_MAX = 1e12  # narrower posteriors than this (cone -> 0) leave the sun's own lobe
+HORIZONS = ("renormalise", "drop")  # what becomes of a spread lobe's part below the horizon
+HORIZON = "drop"  # chosen on the tuning part of eval-real (docs/experiments/sun_spread.md)
 
 
 def mean_cosine(kappa: float) -> float:
@@ -116,27 +121,41 @@ def convolved_kappa(kappa_a: float, kappa_b: float) -> float:
     return min(_kappa_of_mean_cosine(mean_cosine(kappa_a) * mean_cosine(kappa_b)), kappa_a, kappa_b)
 
 
-def spread_sky_radiance(model, params: torch.Tensor, radius68_rad: float) -> tuple[torch.Tensor, np.ndarray]:
+def spread_lobe(grid, zenith_rad: torch.Tensor, azimuth_rad: torch.Tensor, kappa_sun: torch.Tensor,
+                radius68_rad: float, horizon: str | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """Unit-energy vMF suns (B,) (``f2l.lighting.sun_lobe`` arguments, float64) spread over a vMF
+    posterior of 68% radius ``radius68_rad``: (B, rows * W) texel means and the spread lobes'
+    concentrations (B,). ``horizon`` (default ``HORIZON``): "drop" gives all H rows, each lobe
+    with the sharp lobe's energy over the sphere (its part below the horizon is the caller's to
+    drop); "renormalise" the sky rows, each lobe with the sharp lobe's energy there."""
+    horizon = HORIZON if horizon is None else horizon
+    if horizon not in HORIZONS:
+        raise ValueError(f"horizon must be one of {HORIZONS}, got {horizon!r}")
+    rows = grid.sky_rows if horizon == "renormalise" else grid.height
+    solid = torch.tensor(grid.solid_angles_flat[: rows * grid.width], dtype=torch.float64)
+    vals, flat = sun_lobe_sparse(grid, zenith_rad, azimuth_rad, kappa_sun, rows)
+    energy = (vals * solid[flat]).sum(1)  # (B,) the sharp lobe's energy on those rows
+    kappa_post = kappa_for_radius(float(radius68_rad))
+    kappa = np.array([convolved_kappa(float(k), kappa_post) for k in kappa_sun.numpy()])
+    lobe = sun_lobe(grid, zenith_rad, azimuth_rad, torch.as_tensor(kappa, dtype=torch.float64), rows)
+    held = (lobe * solid).sum(1)  # > 0: the lobe's centre is on the rows
+    return lobe * torch.where(held > 0, energy / held.clamp_min(1e-300), torch.zeros_like(held))[:, None], kappa
+
+
+def spread_sky_radiance(model, params: torch.Tensor, radius68_rad: float,
+                        horizon: str | None = None) -> tuple[torch.Tensor, np.ndarray]:
     """A compact-sun model's radiance on the sky rows, (B, sky_rows * W, 3) float64, with each
     row of ``params`` (B, P)'s sun spread over a vMF posterior of 68% radius ``radius68_rad``
-    (module docstring), and the written lobes' concentrations (B,).
-
-    The sky part is the model's own (w_sky ⊙ sky(params)); only the sun lobe is replaced."""
+    (:func:`spread_lobe`; the part below the horizon dropped or renormalised, ``horizon``), and
+    the spread lobes' concentrations (B,). The sky part is the model's own (w_sky ⊙ sky(params));
+    only the sun lobe is replaced."""
     grid, lay = model.grid, model.sun_layout
     with torch.no_grad():
-        sky, w_sky, (vals, flat, w_sun) = model.light_parts(params)
+        sky, w_sky, (_, _, w_sun) = model.light_parts(params)
         p = params.to(torch.float64)
-        sky_size = grid.sky_rows * grid.width
-        solid = torch.tensor(grid.solid_angles_flat[:sky_size], dtype=torch.float64)
-        energy = (vals * solid[flat]).sum(1)  # (B,) the sharp lobe's energy on the sky rows
         kappa_sun = (p[:, lay.kappa] if lay.kappa is not None else torch.full((len(p),), float(model.sun_kappa),
                                                                                 dtype=torch.float64))
-        kappa_sun = kappa_sun.clamp(*KAPPA_RANGE).numpy()
-        kappa_post = kappa_for_radius(float(radius68_rad))
-        kappa = np.array([convolved_kappa(float(k), kappa_post) for k in kappa_sun])
         zenith = 0.5 * math.pi - p[:, lay.elevation].clamp(0.0, 0.5 * math.pi)
-        lobe = sun_lobe(grid, zenith, p[:, lay.azimuth], torch.as_tensor(kappa, dtype=torch.float64), grid.sky_rows)
-        held = (lobe * solid).sum(1)  # the spread lobe's energy above the horizon (> 0: its centre is there)
-        lobe = lobe * torch.where(held > 0, energy / held.clamp_min(1e-300), torch.zeros_like(held))[:, None]
-        upper = sky * w_sky[:, None, :] + lobe[:, :, None] * w_sun[:, None, :]
+        lobe, kappa = spread_lobe(grid, zenith, p[:, lay.azimuth], kappa_sun.clamp(*KAPPA_RANGE), radius68_rad, horizon)
+        upper = sky * w_sky[:, None, :] + lobe[:, : grid.sky_rows * grid.width, None] * w_sun[:, None, :]
     return upper, kappa
