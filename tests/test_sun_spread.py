@@ -152,7 +152,7 @@ def sunny_face():
     face = render_face(grid, model_probe(model, params), np.random.default_rng(3), image_size=64,
                        albedo=[0.6, 0.45, 0.35], head_pose_deg=[0.0, 0.0, 0.0], threads=1)
     obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid)
-    off = estimate(obs, model, EstimatorConfig(threads=1, skin_gloss=0.0))
+    off = estimate(obs, model, EstimatorConfig(threads=1, skin_gloss=0.0, sun_spread=0.0))
     on = estimate(obs, model, EstimatorConfig(threads=1, skin_gloss=0.0, sun_spread=1.0))
     return model, off, on
 
@@ -202,7 +202,7 @@ def test_an_overcast_fit_is_not_spread():
     obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, grid)
     # every fit judged overcast (sun share below 1): no exact sun core, no profile
     cfg = dict(threads=1, skin_gloss=0.0, sun_elevation_profile_deg=(), sun_core_min_share=1.0)
-    off = estimate(obs, model, EstimatorConfig(**cfg))
+    off = estimate(obs, model, EstimatorConfig(**cfg, sun_spread=0.0))
     on = estimate(obs, model, EstimatorConfig(**cfg, sun_spread=1.0))
     assert off.timings["sun_core"] == 0.0 and on.sun_spread_kappa is None
     np.testing.assert_array_equal(on.probe, off.probe)
