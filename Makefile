@@ -144,7 +144,7 @@ ae-weights: $(STAMP)
 # Sky autoencoder against the other built-in models (docs/results/ae.md): paper Table 1 —
 # each model fitted to the 150 held-out skies of the `make ae-weights` corpus (regenerated alone,
 # identical; ~45 min on 2 cores) — then the same models estimated from 24 synthetic faces (~4 min).
-# The synthetic faces are Lambertian: read them so (--skin-gloss 0; the default is for real skin), with the sharp
+# The synthetic faces are Lambertian: read them so (--skin-gloss 0 --skin-reflection 0; the defaults are for real skin), with the sharp
 # sun as fitted (--set sun_spread=0: the default spreads it over a cone calibrated on path-traced faces).
 EVAL_AE := build/eval_ae
 eval-ae: $(STAMP)
@@ -153,20 +153,20 @@ eval-ae: $(STAMP)
 		$(BIN)/f2l eval fit-probe $(EVAL_AE)/corpus/heldout --model $$m --out $(EVAL_AE)/table1/$$m || exit 1; \
 	done
 	$(BIN)/f2l eval synth --out $(EVAL_AE)/faces --n 24 --seed 11 --lambertian --json
-	$(BIN)/f2l estimate $(EVAL_AE)/faces -m sh9 -m sh25 -m sunsky -m ae --skin-gloss 0 --set sun_spread=0 --out $(EVAL_AE)/est --json
+	$(BIN)/f2l estimate $(EVAL_AE)/faces -m sh9 -m sh25 -m sunsky -m ae --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_AE)/est --json
 	$(BIN)/f2l evaluate $(EVAL_AE)/est
 
 # Sun+Sky acceptance harness: median Sun-ang / Sun-dω MAE on 24 sunny faces (sun 10-70° high, all
 # azimuths, noisy 8-bit photos) and the sun energy share on 10 overcast faces, SH25 for reference.
-# f2l's own renders are Lambertian: read them so (--skin-gloss 0; the default is for real skin).
+# f2l's own renders are Lambertian: read them so (--skin-gloss 0 --skin-reflection 0; the defaults are for real skin).
 EVAL_SUNSKY := build/eval_sunsky
 eval-sunsky: $(STAMP)
 	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/sunny --n 24 --seed 101 --overcast-fraction 0 --lambertian \
 		--sun-elevation-deg 10:70 --capture --json
 	$(BIN)/f2l eval synth --out $(EVAL_SUNSKY)/overcast --n 10 --seed 102 --overcast-fraction 1 --lambertian --json
-	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --no-sun-prior --skin-gloss 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_sunny --json
-	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sunsky --skin-gloss 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_sunny_exif --json
-	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --skin-gloss 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_overcast --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sh25 -m sunsky --no-sun-prior --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_sunny --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/sunny -m sunsky --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_sunny_exif --json
+	$(BIN)/f2l estimate $(EVAL_SUNSKY)/overcast -m sh25 -m sunsky --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_SUNSKY)/est_overcast --json
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_sunny_exif
 	$(BIN)/f2l evaluate $(EVAL_SUNSKY)/est_overcast
@@ -174,7 +174,7 @@ eval-sunsky: $(STAMP)
 # Face fitting end to end: synthetic photos (painted features, 256 px, EXIF focal length) under
 # known sunny skies -> f2l fit-faces -> normal error against the true mesh -> sunsky estimates from
 # the fitted geometry and from its true-geometry twin (same pixels and observations), side by side.
-# The photos are Lambertian: read them so (--skin-gloss 0).
+# The photos are Lambertian: read them so (--skin-gloss 0 --skin-reflection 0, the sharp sun).
 EVAL_FIT := build/eval_fit_faces
 eval-fit-faces: $(STAMP)
 	$(BIN)/f2l eval synth --out $(EVAL_FIT)/truth --n 30 --seed 301 --image-size 256 --features --lambertian \
@@ -182,8 +182,8 @@ eval-fit-faces: $(STAMP)
 	$(BIN)/f2l fit-faces $(EVAL_FIT)/truth/photos --out $(EVAL_FIT)/fitted \
 		--gt-probes $(EVAL_FIT)/truth/probes --json
 	$(BIN)/f2l eval compare-geometry $(EVAL_FIT)/fitted --truth $(EVAL_FIT)/truth --twin-out $(EVAL_FIT)/true_geometry
-	$(BIN)/f2l estimate $(EVAL_FIT)/fitted -m sunsky --no-sun-prior --skin-gloss 0 --set sun_spread=0 --out $(EVAL_FIT)/est_fitted --json
-	$(BIN)/f2l estimate $(EVAL_FIT)/true_geometry -m sunsky --no-sun-prior --skin-gloss 0 --set sun_spread=0 --out $(EVAL_FIT)/est_true_geometry --json
+	$(BIN)/f2l estimate $(EVAL_FIT)/fitted -m sunsky --no-sun-prior --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_FIT)/est_fitted --json
+	$(BIN)/f2l estimate $(EVAL_FIT)/true_geometry -m sunsky --no-sun-prior --skin-gloss 0 --skin-reflection 0 --set sun_spread=0 --out $(EVAL_FIT)/est_true_geometry --json
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_fitted
 	$(BIN)/f2l evaluate $(EVAL_FIT)/est_true_geometry
 

@@ -49,7 +49,9 @@ def test_one_face_with_a_probe_and_a_sun(estimates):
     assert np.linalg.norm(face.sun_direction) == pytest.approx(1.0, abs=1e-6)
     assert -90 <= face.sun_elevation_deg <= 90 and -180 <= face.sun_azimuth_deg <= 180
     assert {"turbidity", "kappa", "sun_elevation_rad", "sun_azimuth_rad"} <= set(face.params)
-    assert face.sun_elevation_deg == pytest.approx(np.degrees(face.params["sun_elevation_rad"]), abs=1.0)
+    # sun_direction is the elevation profile's posterior mean over its pinned refits (10, 25, ... 85°), the
+    # parameters are its best refit's: they agree to within the pins' spacing
+    assert face.sun_elevation_deg == pytest.approx(np.degrees(face.params["sun_elevation_rad"]), abs=15.0)
     assert face.units.startswith("relative")  # the photo has no EXIF exposure
     x0, y0, x1, y1 = face.face_box_px
     assert 150 < x0 < x1 < 350 and 0 < y0 < y1 < 250

@@ -28,7 +28,7 @@ from tests.plugin_helpers import f2l_cmd
 GRID = LatLongGrid(32, 64)
 SUN_EL, SUN_AZ = math.radians(35.0), math.radians(50.0)
 SUN = direction_from_angles(SUN_EL, SUN_AZ)
-CFG = EstimatorConfig(sun_prior_from_capture=False, skin_gloss=0.0)
+CFG = EstimatorConfig(sun_prior_from_capture=False, skin_gloss=0.0, skin_reflection=0.0)  # Lambertian faces
 
 
 def _angle_deg(a, b) -> float:

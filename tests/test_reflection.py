@@ -150,7 +150,7 @@ def angle_deg(a, b) -> float:
 def test_the_estimator_reads_a_mirrored_environment_with_the_term_and_is_unchanged_without_it(glossy_face):
     obs, sun = glossy_face
     model = check_model("sunsky", GRID)
-    base = EstimatorConfig(threads=1, skin_gloss=0.0, sun_prior_from_capture=False)
+    base = EstimatorConfig(threads=1, skin_gloss=0.0, skin_reflection=0.0, sun_prior_from_capture=False)
     off = estimate(obs, model, base)
     on = estimate(obs, model, dataclasses.replace(base, skin_reflection=0.02))
     assert np.isfinite(on.probe).all() and on.probe.min() >= 0

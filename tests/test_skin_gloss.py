@@ -58,7 +58,7 @@ def test_apparent_albedo_for_sun_models_only():
 
     obs = next(_faces(1))[0]["glossy"]
     rho = np.array([0.3, 0.2, 0.1])
-    assert EstimatorConfig().skin_gloss == pytest.approx(0.05)
+    assert EstimatorConfig().skin_gloss == pytest.approx(0.1)
     cfg = dataclasses.replace(EstimatorConfig(), threads=1, skin_gloss=0.04)
     np.testing.assert_allclose(FaceProblem(obs, load_model("sunsky", GRID), cfg).apparent(rho), rho + 0.04)
     assert FaceProblem(obs, load_model("sh9", GRID), cfg).apparent(rho) is rho  # linear models: Lambertian
@@ -82,7 +82,7 @@ def test_estimate_cli_skin_gloss(small_shards, tmp_path):
                               capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr
         runs[name] = (json.loads((out / "run.json").read_text()), out)
-    assert runs["default"][0]["config"]["skin_gloss"] == pytest.approx(0.05)
+    assert runs["default"][0]["config"]["skin_gloss"] == pytest.approx(0.1)
     assert runs["lambertian"][0]["config"]["skin_gloss"] == 0.0
     assert runs["default"][0]["config_hashes"] != runs["lambertian"][0]["config_hashes"]
     probes = sorted((runs["default"][1] / "probes" / "sh9").glob("*.exr"))

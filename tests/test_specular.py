@@ -55,7 +55,8 @@ def test_a_lambertian_face_keeps_k_s_at_zero_and_a_glossy_one_gets_a_highlight()
     glossy faces the highlight places the sun (measured: mean 5.1° -> 2.8° on these four with
     the sun's elevation profile, the default; 11.2° -> 3.2° without it)."""
     model = load_model("sunsky", GRID)
-    on = dataclasses.replace(EstimatorConfig(), sun_specular=True, threads=1, skin_gloss=0.0)  # the highlight alone
+    on = dataclasses.replace(EstimatorConfig(), sun_specular=True, threads=1, skin_gloss=0.0,  # the highlight alone
+                             skin_reflection=0.0, sun_spread=0.0)
     off = dataclasses.replace(on, sun_specular=False)
 
     def angle(a, b):

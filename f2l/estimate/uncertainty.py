@@ -53,11 +53,12 @@ LATTICE_SIGMA_DEG = 1.6  # per-axis spread of a mass point: a 5.6° lattice cell
 SPREAD_POINTS = 32
 MIN_WEIGHT = 1e-6  # mass points below this share of the largest are left out (they move no quantile)
 LEVELS = (0.68, 0.90)
-# fitted on make eval-real's tuning part (f2l.evaluation.calibration.fit_uncertainty_model)
-# (21 sunny faces of `make eval-real EVAL_REAL_N=48`'s tuning part, tau = 30; docs/experiments/uncertainty.md)
-CONE_COEFFICIENTS = (2.576, 0.07853, -1.643, 0.3594)  # beta over [1, ln p_90, lit, overcast]
-CONE_QUANTILES = (1.288, 2.128)  # k_68, k_90
-MAE_COEFFICIENTS = (-0.1119, 0.9823, 0.1464, 0.06034)  # over [1, r_90 / 90°, lit, relative residual]
+# fitted on make eval-real's tuning part (f2l.evaluation.calibration.fit_uncertainty_model): the 56 sunny faces
+# of the 128-case set's tuning part, with the skin defaults of 2026-11-27 (skin_gloss 0.1, skin_reflection
+# 0.01), tau = 30; docs/experiments/uncertainty.md "Refitted on the 128-case set"
+CONE_COEFFICIENTS = (2.066, 0.08246, -0.9691, 0.5930)  # beta over [1, ln p_90, lit, overcast]
+CONE_QUANTILES = (1.415, 2.872)  # k_68, k_90
+MAE_COEFFICIENTS = (-0.01838, 0.6396, 0.0003868, 0.3426)  # over [1, r_90 / 90°, lit, relative residual]
 
 
 @dataclass
