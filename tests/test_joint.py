@@ -125,6 +125,22 @@ def test_linear_and_latent_sky_models_share_one_light(faces):
     assert np.isfinite(joint.result.probe).all() and len(joint.faces) == 2
 
 
+def test_darkness_reads_the_apparent_albedo_with_the_skins_gloss():
+    """A dark skin (rho 0.08 beside 0.35 and 0.4) read with the gloss g = 0.1 has rho + g at 0.38x
+    its neighbours' median: not shaded (DARK_RATIO 0.3); rho alone (0.21x) would pass for shade,
+    as a face in shade (rho + g at 0.1x) still does. Other photos' faces do not count."""
+    from f2l.estimate.joint_common import DARK_RATIO, darkness
+
+    albedo = {0: np.full(3, 0.08), 1: np.full(3, 0.35), 2: np.full(3, 0.40), 3: np.full(3, 0.01)}
+    group = {0: 0, 1: 0, 2: 0, 3: 1}
+    with_gloss = darkness(albedo, group, gloss=0.1)
+    assert with_gloss[0] == pytest.approx(0.18 / 0.475) and with_gloss[0] >= DARK_RATIO
+    assert darkness(albedo, group)[0] == pytest.approx(0.08 / 0.375) and darkness(albedo, group)[0] < DARK_RATIO
+    assert with_gloss[3] == 1.0  # alone in its photo
+    shaded = darkness({0: np.zeros(3), 1: np.full(3, 0.35), 2: np.full(3, 0.40)}, {0: 0, 1: 0, 2: 0}, gloss=0.1)
+    assert shaded[0] < DARK_RATIO
+
+
 def test_face_noise_reads_the_noise_of_a_flat_patch():
     rng = np.random.default_rng(0)
     rr, cc = np.mgrid[0:40, 0:40]

@@ -211,7 +211,8 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         seen_agreement.update(agreement)
         if disagree_ratio is None or fit is None:
             break
-        shade = darkness({i: fit.albedo[j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active})
+        shade = darkness({i: fit.albedo[j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active},
+                         gloss=problems[active[0]].gloss)
         worst = max(active, key=lambda i: agreement.get(i, 0.0))
         if agreement.get(worst, 0.0) > disagree_ratio:
             if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)

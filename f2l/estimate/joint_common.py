@@ -79,12 +79,15 @@ def face_weights(observations: list[FaceObservation], cfg: EstimatorConfig, nois
     return len(q) * q / q.sum()
 
 
-def darkness(albedo: dict[int, np.ndarray], group: dict[int, int]) -> dict[int, float]:
-    """Each face's mean albedo under the joint light over the median of the other faces' of its
-    photo (``group``: face -> exposure group; 1 where it is alone in its photo). Under the group's
-    sun, a face in another's shadow or under a hat reads as a far darker skin than its neighbours'.
-    Faces of other photos do not count: their exposure and albedo cannot be told apart."""
-    level = {i: float(np.mean(a)) for i, a in albedo.items()}
+def darkness(albedo: dict[int, np.ndarray], group: dict[int, int], gloss: float = 0.0) -> dict[int, float]:
+    """Each face's mean apparent albedo (rho + ``gloss``, the skin's gloss of sun models) under the
+    joint light over the median of the other faces' of its photo (``group``: face -> exposure group;
+    1 where it is alone in its photo). Under the group's sun, a face in another's shadow or under a
+    hat reads as a far darker skin than its neighbours'. Faces of other photos do not count: their
+    exposure and albedo cannot be told apart. The gloss counts because the shading sees rho + g:
+    with g = 0.1, a dark skin's rho alone reads 0.15-0.3x its lighter neighbours' and passed for a
+    face in shade (eval-groups: 11 of 18 faces left out at 3 faces; docs/experiments/joint_estimate.md)."""
+    level = {i: float(np.mean(a)) + gloss for i, a in albedo.items()}
     out = {}
     for i in level:
         others = [level[o] for o in level if o != i and group[o] == group[i]]

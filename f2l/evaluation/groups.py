@@ -83,7 +83,8 @@ def group_rows(render_dirs, fitted, model_name: str = "sunsky", sizes=SIZES, cfg
                    "overcast": overcast, "single": np.mean(ok, axis=0).tolist(),
                    "joint": score(joint.result.probe, joint.result.sun_direction), "uniform": uniform,
                    "single_s": float(sum(singles[i][1] for i in range(n))), "joint_s": joint_s,
-                   "left_out": sum(not s.used for s in joint.faces)}
+                   "left_out": sum(not s.used for s in joint.faces),
+                   "left_out_reasons": [s.reason for s in joint.faces if not s.used]}
             rows.append(row)
             if progress is not None:
                 progress(row)
