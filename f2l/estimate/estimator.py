@@ -185,7 +185,9 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
     uncertainty_s = time.perf_counter() - t_uncertainty
     spread_kappa = None
     with torch.no_grad():
-        chosen = [best] if weights is None else list(range(len(totals)))
+        # the profile's mixture over its components that weigh anything at float32 (weights below
+        # 1e-9 of the largest move no texel of the probe): each costs a radiance and a spread lobe
+        chosen = [best] if weights is None else [i for i in range(len(totals)) if weights[i] >= 1e-9 * weights.max()]
         rads = prob.radiance(params[chosen]).clone()
         if cfg.sun_spread > 0 and uncertainty is not None and sun_core > 0:  # f2l.estimate.sun_spread
             radius = np.radians(cfg.sun_spread * uncertainty.cone68_deg)
@@ -195,7 +197,7 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
             e_h = (prob.e_sky[None, :, None] * rads[:, : prob.L_sky]).sum(1)
             rads[:, prob.L_sky :] = rho_g[chosen][:, None, None] / np.pi * e_h[:, None, :]
         rads = rads.clamp_min(0.0)
-        rad = rads[0] if weights is None else torch.einsum("b,blc->lc", torch.as_tensor(weights, dtype=rads.dtype), rads)
+        rad = rads[0] if weights is None else torch.einsum("b,blc->lc", torch.as_tensor(weights[chosen], dtype=rads.dtype), rads)
     probe = rad.numpy().reshape(obs.grid.height, obs.grid.width, 3).astype(np.float32)
     if not np.isfinite(probe).all():
         raise EstimationError("estimated probe is not finite")

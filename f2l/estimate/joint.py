@@ -422,14 +422,14 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
         _, _ = jp.objective(params[best : best + 1], rho[best : best + 1], side[best : best + 1])
         per_face = jp.last_data[:, 0].numpy()
         w = torch.as_tensor(jp.weights, dtype=dtype)
-        chosen = [best] if mix is None else list(range(len(totals)))
+        chosen = [best] if mix is None else [i for i in range(len(totals)) if mix[i] >= 1e-9 * mix.max()]  # as estimate()
         rads = first.radiance(params[chosen]).clone()
         if first.sky:
             rho_g = (side[chosen][:, :K] * w).sum(1) / w.sum()  # the faces' weighted ground albedo
             e_h = (first.e_sky[None, :, None] * rads[:, : first.L_sky]).sum(1)
             rads[:, first.L_sky :] = rho_g[:, None, None] / np.pi * e_h[:, None, :]
         rads = rads.clamp_min(0.0)
-        rad = rads[0] if mix is None else torch.einsum("b,blc->lc", torch.as_tensor(mix, dtype=rads.dtype), rads)
+        rad = rads[0] if mix is None else torch.einsum("b,blc->lc", torch.as_tensor(mix[chosen], dtype=rads.dtype), rads)
     grid = first.grid
     probe = rad.numpy().reshape(grid.height, grid.width, 3).astype(np.float32)
     if not np.isfinite(probe).all():

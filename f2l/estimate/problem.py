@@ -166,13 +166,12 @@ class FaceProblem:
             return
         from f2l.estimate.reflection import SkinReflection
 
-        def pieces(pixels):
-            return SkinReflection(np.asarray(obs.normals)[pixels], np.asarray(obs.points)[pixels], self.grid,
-                                  self.hybrid.block, cfg.skin_reflection_exponent, dtype)
-
-        self.refl = pieces(self.idx)
-        if self.clip_hybrid is not None:
-            self.clip_refl = pieces(self._clipped_idx)
+        # one kernel over the fitted and the clipped pixels together (their term is split after the
+        # product): one set-up and one term per evaluation instead of two
+        pixels = self.idx if self.clip_hybrid is None else np.concatenate([self.idx, self._clipped_idx])
+        self.refl = SkinReflection(np.asarray(obs.normals)[pixels], np.asarray(obs.points)[pixels], self.grid,
+                                   self.hybrid.block, cfg.skin_reflection_exponent, dtype)
+        self.clip_refl = self.clip_hybrid is not None  # the clipped pixels' rows follow the fitted ones
 
     def reflection_terms(self, params, ground_albedo) -> tuple[torch.Tensor, torch.Tensor | None]:
         """g_r π ∫ K(r·ω) l dω on the fitted pixels (B, N, 3) and on the clipped ones (or None),
@@ -183,9 +182,9 @@ class FaceProblem:
         m = sky_block_means_without_sun(self.hybrid, l_sky, sun, m_sky)
         d = sun_direction_of(params, self.model.sun_layout)
         ground = ground_albedo[:, None] / np.pi * e_h
-        g_r = self.cfg.skin_reflection
-        clip = None if self.clip_refl is None else g_r * self.clip_refl.term(m, d, sun[2], ground)
-        return g_r * self.refl.term(m, d, sun[2], ground), clip
+        term = self.cfg.skin_reflection * self.refl.term(m, d, sun[2], ground)
+        n = len(self.idx)
+        return (term[:, :n], term[:, n:]) if self.clip_refl else (term, None)
 
     def specular_term(self, spec, params, k_s) -> torch.Tensor:
         """(B, N, 3) k_s V D / (4 n·v) w_sun of the pixels of ``spec`` (f2l.estimate.specular)."""

@@ -90,8 +90,20 @@ class SkinReflection:
         B, nb, C = m.shape  # one (N, nb) x (nb, B C) product, not B batched ones
         out = (self.k_blocks @ m.transpose(0, 1).reshape(nb, B * C)).reshape(-1, B, C).transpose(0, 1)
         cos = (sun_direction @ self.mirror.T).clamp_min(0.0)  # (B, N)
-        out = out + (self.norm * cos**self.exponent)[:, :, None] * w_sun[:, None, :]
+        out = out + (self.norm * _power(cos, self.exponent))[:, :, None] * w_sun[:, None, :]
         return out + self.k_ground[None, :, None] * ground_radiance[:, None, :]
+
+
+def _power(a: torch.Tensor, exponent: float) -> torch.Tensor:
+    """a ** exponent; by repeated squaring where the exponent is a power of two (its gradient
+    is then products too, cheaper than pow's)."""
+    e = int(exponent)
+    if e == exponent and e >= 1 and e & (e - 1) == 0:
+        while e > 1:
+            a = a * a
+            e //= 2
+        return a
+    return a**exponent
 
 
 def _power_inplace(a: np.ndarray, exponent: float) -> None:
@@ -112,9 +124,17 @@ def sky_block_means_without_sun(hybrid, l_sky: torch.Tensor, sun: tuple,
     ``block_means``: ``hybrid.block_means(l_sky)`` where the caller has it."""
     vals, flat, w_sun = sun
     m = hybrid.block_means(l_sky) if block_means is None else block_means
-    block_of = torch.as_tensor(hybrid.block_of)[flat]  # (B, K)
+    block_of = _block_index(hybrid)[flat]  # (B, K)
     lobe = torch.zeros(m.shape[:2], dtype=m.dtype).scatter_add(1, block_of, vals * hybrid.d_omega[flat])
     return m - (lobe / hybrid.omega_b[None])[:, :, None] * w_sun[:, None, :]
+
+
+def _block_index(hybrid) -> torch.Tensor:
+    """``hybrid.block_of`` as a tensor, made once per transport."""
+    cached = getattr(hybrid, "_block_of_tensor", None)
+    if cached is None:
+        cached = hybrid._block_of_tensor = torch.as_tensor(hybrid.block_of)
+    return cached
 
 
 def sun_direction_of(params: torch.Tensor, layout) -> torch.Tensor:
