@@ -188,8 +188,12 @@ def estimate(obs: FaceObservation, model: LightingModel, config: EstimatorConfig
         # the profile's mixture over its components that weigh anything at float32 (weights below
         # 1e-9 of the largest move no texel of the probe): each costs a radiance and a spread lobe
         chosen = [best] if weights is None else [i for i in range(len(totals)) if weights[i] >= 1e-9 * weights.max()]
-        rads = prob.radiance(params[chosen]).clone()
-        if cfg.sun_spread > 0 and uncertainty is not None and sun_core > 0:  # f2l.estimate.sun_spread
+        spread = cfg.sun_spread > 0 and uncertainty is not None and sun_core > 0
+        if spread and prob.sky:  # every row is written below: the sky's by the spread, the ground's from E_h
+            rads = torch.zeros(len(chosen), prob.grid.size, 3, dtype=params.dtype)
+        else:
+            rads = prob.radiance(params[chosen]).clone()
+        if spread:  # f2l.estimate.sun_spread
             radius = np.radians(cfg.sun_spread * uncertainty.cone68_deg)
             rads[:, : prob.L_sky], kappas = spread_sky_radiance(model, params[chosen], radius)
             spread_kappa = float(kappas[0 if weights is None else chosen.index(best)])
