@@ -193,6 +193,13 @@ class EstimatorConfig:
     # 0.1758; reporting part 0.0642 -> 0.0622 (uniform 0.0631), MAE (s) 0.172 -> 0.166. On f2l's own
     # Lambertian renders, where the sun is found within a degree, it costs (MAE (s) 0.051 -> 0.065):
     # there use 0. docs/experiments/sun_spread.md.
+    # joint estimates (f2l.estimate.joint): the other heads of a face's photo as occluders of its sky
+    # (spheres fitted to their records; f2l.estimate.neighbours). Off: on `make eval-groups`' tuning set
+    # (seed 0) the joint Sun-ang 11.5 -> 10.9 deg at 2 faces, 9.4 -> 8.6 at 3, but the report set (seed 1)
+    # did not confirm it (2 faces 13.0 -> 15.4, MAE (s) 0.164 -> 0.174; 3 faces 13.8 -> 13.7);
+    # docs/experiments/joint_estimate.md "Neighbours' shadows".
+    neighbour_shadows: bool = _setting(False, 'sun',
+                                       "Joint estimates: the other heads of a photo cast shadows on each face (spheres).")
     sun_spread: float = _setting(1.0, 'sun',
                                  "Spread the probe's sun over this multiple of its 68% direction cone (0: the sharp sun).")
 

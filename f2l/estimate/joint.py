@@ -176,6 +176,10 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
                                      disagree_ratio=disagree_ratio)  # f2l.estimate.latent_joint
     groups = _renumber(exposure_group if exposure_group is not None else [0] * K)
     noise = [face_noise(o, None if pixel_rc is None else pixel_rc[i]) for i, o in enumerate(observations)]
+    if cfg.neighbour_shadows and K > 1:  # the photo's other heads shade each face (f2l.estimate.neighbours)
+        from f2l.estimate.neighbours import with_neighbours
+
+        observations, _ = with_neighbours(list(observations), [int(g) for g in groups])
     shares = [FaceShare(face_id=o.face_id, weight=0.0) for o in observations]
     torch.set_num_threads(max(1, cfg.threads))
     problems: dict[int, FaceProblem] = {}
