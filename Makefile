@@ -112,7 +112,9 @@ EVAL_VIDEO := build/eval_video
 eval-video: $(STAMP)
 	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 0 --out $(EVAL_VIDEO)/s0 --json
 	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 1 --out $(EVAL_VIDEO)/s1 --json
-	$(BIN)/f2l eval video $(EVAL_VIDEO)/s0 $(EVAL_VIDEO)/s1 --out $(EVAL_VIDEO)/eval
+	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 2 --out $(EVAL_VIDEO)/s2 --json
+	$(BIN)/f2l eval render-faces --sequence --clip-kind mixed --n 6 --frames 48 --seed 3 --out $(EVAL_VIDEO)/s3 --json
+	$(BIN)/f2l eval video $(EVAL_VIDEO)/s0 $(EVAL_VIDEO)/s1 $(EVAL_VIDEO)/s2 $(EVAL_VIDEO)/s3 --out $(EVAL_VIDEO)/eval
 	$(BIN)/f2l dev bench-video $(EVAL_VIDEO)/s0/clips/clip-s0-00000-static.mp4 $(EVAL_VIDEO)/s1/clips/clip-s1-00000-static.mp4 --repeat 5
 
 # Rebuild the shipped Sun+Sky GMM prior from the project's own sky corpus (~15 min on 2 cores).
