@@ -24,14 +24,15 @@ neither covers it nor ranks the faces by it (docs/experiments/uncertainty.md). S
 radius is r_q = k_q exp(β · x), x = [1, ln p_90, lit, overcast]: ``lit`` the share of the face's
 pixels facing the estimated sun (n · ĉ > 0; a sun behind the head lights few), ``overcast`` 1 when
 the fit judged the light overcast (sun share below ``sun_core_min_share``, no profile). β
-(``CONE_COEFFICIENTS``) is the least-squares fit of ln Sun-ang on x over the tuning part of
-``make eval-real``, k_q (``CONE_QUANTILES``) the q-quantiles of Sun-ang / exp(β · x) there: the
-tuning part's cones hold the true sun for 68% / 90% of its sunny faces by construction, and the
-reporting part says whether that holds (f2l.evaluation.calibration).
+(``CONE_COEFFICIENTS``) is the least-squares fit of ln Sun-ang on x over the tuning faces (``make
+eval-real``'s tuning part and ``make eval-framings``' seed-0 renders), k_q (``CONE_QUANTILES``) the
+q-quantiles of Sun-ang / exp(β · x) there: the tuning faces' cones hold the true sun for 68% / 90%
+of them by construction, and ``make eval-real``'s reporting part and held-out maps say whether that
+holds (f2l.evaluation.calibration).
 
 Predicted relit error. ``predicted_mae_s`` is a linear regression of the relit-scene MAE (s)
 (f2l.metrics.render_metrics) on [1, r_90 / 90°, lit, the search's relative residual R_min / |y|²],
-fitted by least squares on the same tuning part (``MAE_COEFFICIENTS``).
+fitted by least squares on the same tuning faces (``MAE_COEFFICIENTS``).
 
 Conventions: unit directions, +Y up (the grid's), radii in degrees, at most 180°.
 """
@@ -53,12 +54,13 @@ LATTICE_SIGMA_DEG = 1.6  # per-axis spread of a mass point: a 5.6° lattice cell
 SPREAD_POINTS = 32
 MIN_WEIGHT = 1e-6  # mass points below this share of the largest are left out (they move no quantile)
 LEVELS = (0.68, 0.90)
-# fitted on make eval-real's tuning part (f2l.evaluation.calibration.fit_uncertainty_model): the 56 sunny faces
-# of the 128-case set's tuning part, with the skin defaults of 2026-11-27 (skin_gloss 0.1, skin_reflection
-# 0.01), tau = 30; docs/experiments/uncertainty.md "Refitted on the 128-case set"
-CONE_COEFFICIENTS = (2.066, 0.08246, -0.9691, 0.5930)  # beta over [1, ln p_90, lit, overcast]
-CONE_QUANTILES = (1.415, 2.872)  # k_68, k_90
-MAE_COEFFICIENTS = (-0.01838, 0.6396, 0.0003868, 0.3426)  # over [1, r_90 / 90°, lit, relative residual]
+# fitted (f2l.evaluation.calibration.fit_uncertainty_model) on every tuning-only sunny face there is: the
+# 56 of `make eval-real`'s tuning part and the 147 of `make eval-framings`' seed-0 renders (full, half and
+# group framings, each face alone), with the defaults of 2026-11-27 (skin_gloss 0.1, skin_reflection 0.01),
+# tau = 30; docs/experiments/uncertainty.md "Calibrated on 203 tuning faces"
+CONE_COEFFICIENTS = (1.701, 0.2419, -0.6725, 0.6001)  # beta over [1, ln p_90, lit, overcast]
+CONE_QUANTILES = (1.482, 2.958)  # k_68, k_90
+MAE_COEFFICIENTS = (0.04877, 0.3348, -0.03457, 0.2701)  # over [1, r_90 / 90°, lit, relative residual]
 
 
 @dataclass
