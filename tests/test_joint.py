@@ -88,6 +88,25 @@ def test_three_faces_under_one_sky_recover_its_sun(faces, sunsky):
     assert sum(weights) == pytest.approx(3.0) and min(weights) > 0.3
 
 
+def test_a_joint_estimate_carries_the_suns_cones_from_all_its_faces(faces, sunsky):
+    """The joint's cones come from the combined search (f2l.estimate.uncertainty), with every
+    face's pixels in the lit share; they hold the true sun and drive the probe's sun spread."""
+    observations = [_obs(f, str(i)) for i, f in enumerate(faces[:3])]
+    joint = estimate_joint(observations, sunsky, CFG)
+    u = joint.result.sun_uncertainty
+    assert u is not None and 0.0 < u.cone68_deg < u.cone90_deg <= 180.0 and u.predicted_mae_s >= 0.0
+    assert _angle_deg(joint.result.sun_direction, SUN) <= u.cone90_deg
+    assert u.num_pixels == sum(int(np.asarray(o.mask, bool).sum()) for o in observations)
+    lit = np.mean(np.concatenate([np.asarray(o.normals)[np.asarray(o.mask, bool)] for o in observations])
+                  @ joint.result.sun_direction > 0)
+    assert u.lit_fraction == pytest.approx(lit)
+    assert joint.result.sun_spread_kappa is not None and joint.result.sun_spread_kappa > 0
+    unspread = estimate_joint(observations, sunsky, dataclasses.replace(CFG, sun_spread=0.0))
+    assert unspread.result.sun_spread_kappa is None
+    assert np.array_equal(unspread.result.params, joint.result.params)  # the spread moves the probe only
+    assert unspread.result.probe.max() > joint.result.probe.max()  # the sun's peak is spread
+
+
 def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(faces, sunsky):
     observations = [_obs(f, str(i)) for i, f in enumerate(faces)]
     joint = estimate_joint(observations, sunsky, CFG)
@@ -177,6 +196,10 @@ def test_cli_writes_one_probe_per_photo_and_a_row_per_face(small_shards, tmp_pat
     if a["group_used"] and b["group_used"]:
         assert a["probe_path"] == b["probe_path"] and a["probe_path"].startswith("probes/sunsky/group-")
     assert (out / a["probe_path"]).is_file() and c["agreement"] is None
+    for r in (a, b, c):  # every estimate carries the sun's cones, the group's as its own
+        assert r["sun_cone90_deg"] is not None and r["sun_cone68_deg"] < r["sun_cone90_deg"]
+    if a["group_used"] and b["group_used"]:
+        assert a["sun_cone90_deg"] == b["sun_cone90_deg"]
     single = {r["face_id"]: r for r in pq.read_table(out / "single" / "estimates.parquet").to_pylist()}
     assert single[records[2].face_id]["params"] == c["params"]  # a face alone: the same estimate
     assert single[records[0].face_id]["group_id"] == ""

@@ -195,6 +195,8 @@ def test_a_clip_gives_a_light_per_frame_that_finds_each_shots_sun(clip, tmp_path
     assert summary["segments"][1]["why"].startswith("cut or light")
     rows = pq.read_table(tmp_path / "out" / "frames.parquet").to_pylist()
     assert [r["frame"] for r in rows] == list(range(24))
+    for r in rows:  # the window's sun cones on every frame (full joint estimates), ordered
+        assert 0.0 < r["sun_cone68_deg"] < r["sun_cone90_deg"] <= 180.0 and r["predicted_mae_s"] >= 0.0
     for r in rows:
         assert r["status"] == "ok" and r["segment"] == truth[r["frame"]]["segment"]
         assert _angle_deg(r["sun_direction"], truth[r["frame"]]["sun"]) < 15.0, r
@@ -216,6 +218,27 @@ def test_a_clip_gives_a_light_per_frame_that_finds_each_shots_sun(clip, tmp_path
     assert res.exit_code == 0, res.output
     html = (tmp_path / "out" / "report.html").read_text()
     assert 'id="clip"' in html and "sun_track.png" in html and "cut or light" in html
+
+
+def test_a_segment_is_sampled_densely_until_its_first_light_then_every_sample_every(clip, tmp_path):
+    """cold_faces=2, sample_every=3: the first light waits for samples 3 frames apart; until it,
+    every frame is sampled (cold_sample_every=1), after it every 3rd; each shot starts afresh."""
+    from f2l.video.run import estimate_clip
+
+    path, truth = clip
+    options = VideoOptions(model="sunsky", sample_every=3, cold_sample_every=1, cold_faces=2,
+                           focal_35mm_mm=focal_35mm(160))
+    estimate_clip(path, tmp_path / "out", options, every=0, preview=False)
+    rows = pq.read_table(tmp_path / "out" / "frames.parquet").to_pylist()
+    assert [r["frame"] for r in rows if r["sample"]] == [0, 1, 2, 3, 6, 9, 12, 13, 14, 15, 18, 21]
+    for r in rows:
+        assert r["status"] == "ok" and _angle_deg(r["sun_direction"], truth[r["frame"]]["sun"]) < 15.0, r
+    clip_json = json.loads((tmp_path / "out" / "clip.json").read_text())
+    first = [e for e in clip_json["estimates"] if e["cold"]]
+    assert [e["frame"] for e in first] == [3, 15]  # fired once the samples spanned 3 frames
+    assert set(first[0]["window"]) <= {0, 1, 2, 3} and set(first[1]["window"]) <= {12, 13, 14, 15}
+    with pytest.raises(ValueError, match="cold_sample_every"):
+        VideoOptions(cold_sample_every=0)
 
 
 def test_frames_where_the_face_is_covered_carry_a_status_and_the_rest_keep_their_light(clip, tmp_path):
@@ -268,6 +291,7 @@ def test_eval_video_scores_a_clip_against_its_truth_and_each_frame_alone(sequenc
     assert row["sun_ang_video"] < 15.0 and row["alone_frames"] >= 3 and row["sun_ang_alone"] is not None
     assert row["jitter_rms_deg"] is not None and row["jitter_rms_deg"] < 2.0
     assert row["mae_s_video"] is not None and row["frames_per_s"] > 0
+    assert 0.0 <= row["in_cone68"] <= row["in_cone90"] <= 1.0  # each window's cones, scored
     assert "clip-s0-00000-cut" in (tmp_path / "ev" / "video.md").read_text()
 
 

@@ -23,8 +23,8 @@ from f2l.estimate.config import EstimatorConfig
 from f2l.estimate.frames import turn_observation
 from f2l.estimate.joint import DISAGREE_RATIO, JointUnsupported, estimate_joint
 from f2l.estimate.observation import EstimationError, FaceObservation
-from f2l.estimate.record import (_base_row, _get_model, _safe_name, capture_sun_prior, config_hash,
-                                 estimate_in_memory, estimate_record, record_absolute_scale, torch_threads, write_result)
+from f2l.estimate.record import (UNCERTAINTY_DEFAULTS, _base_row, _get_model, _safe_name, capture_sun_prior,
+                                 config_hash, estimate_in_memory, estimate_record, record_absolute_scale, torch_threads, write_result)
 from f2l.io.record_limits import declared_size_problem
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.capabilities import SunAngles
@@ -172,7 +172,8 @@ def estimate_group(records: list, model_name: str, out_dir: str, cfg: EstimatorC
                    exposure_gain=float(share.gain) if share.used else None)
         if share.used:
             for key in ("params", "param_names", "sun_direction", "loss", "iterations", "converged", "probe_path",
-                        "preview_path", "timings_json", "absolute_scale_cd_m2", "absolute_scale_source", "ground_albedo"):
+                        "preview_path", "timings_json", "absolute_scale_cd_m2", "absolute_scale_source", "ground_albedo",
+                        *UNCERTAINTY_DEFAULTS):  # the group's sun cones
                 row[key] = group_row[key]
             row.update(status="ok", albedo=[float(v) for v in share.albedo],
                        ground_albedo=None if share.ground_albedo is None else float(share.ground_albedo),

@@ -60,6 +60,8 @@ from f2l.estimate.params import BoxTransform
 from f2l.estimate.problem import FaceProblem
 from f2l.estimate.skin import skin_albedo_mean
 from f2l.estimate.sun_profile import elevation_posterior
+from f2l.estimate.sun_spread import spread_sky_radiance
+from f2l.estimate.uncertainty import sun_uncertainty
 from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
@@ -278,6 +280,8 @@ def _fit_group(observations, problems, model, cfg: EstimatorConfig, noise, group
     jp = JointProblem(problems, weights, _renumber(groups))
     jp.albedo_group = None if albedo_group is None else _renumber(albedo_group)
     jp.share_parts = share_parts
+    # every face's pixels, in the one camera frame: the uncertainty's lit share pools them
+    jp.normals = np.concatenate([np.asarray(o.normals, np.float64)[np.asarray(o.mask, bool)] for o in observations])
     return _fit(jp, model, cfg, t_start, [o.face_id for o in observations])
 
 
@@ -330,6 +334,7 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     rho_start = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), np.float64)
     t_search = time.perf_counter()
     weight_idx = None
+    combined = None  # the sun search's scores over all faces: the uncertainty's evidence
     if start is not None and jp.hybrid is None:
         theta0 = _inside(np.asarray(start, np.float64).reshape(1, -1), lo, hi)
     elif jp.hybrid is not None:
@@ -338,7 +343,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
         else:
             setup = _setup(first)
             scores = [_scores(p, setup, cfg) for p in jp.faces]
-            found = sun_search.pick(sun_search.combine(scores, np.asarray(jp.weights)), first.grid)
+            combined = sun_search.combine(scores, np.asarray(jp.weights))
+            found = sun_search.pick(combined, first.grid)
             theta0 = first.starts_from(found, setup[1], rho_start)
         lo, hi = lo.copy(), hi.copy()
         lo[model.sun_layout.azimuth], hi[model.sun_layout.azimuth] = -np.inf, np.inf
@@ -414,20 +420,33 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     converged = its < budget
     params, rho, side, totals, best = fitted_starts(jp, unpack, variables, "joint optimisation")
     fit_s = time.perf_counter() - t_fit
-    profile_s, sun_direction, mix = 0.0, None, None
+    profile_s, sun_direction, mix, profile_dirs = 0.0, None, None, None
     if jp.hybrid is not None and sun_core > 0 and cfg.sun_elevation_profile_deg:
         t_profile = time.perf_counter()
         post = elevation_posterior(jp, unpack, variables, (params, rho, side, totals, None), best, cfg, model)
         if post is not None:
             params, rho, side, totals = post.params, post.albedo, post.ground_albedo, post.totals
-            best, mix, sun_direction = post.best, post.weights, post.sun_direction
+            best, mix, sun_direction, profile_dirs = post.best, post.weights, post.sun_direction, post.directions
         profile_s = time.perf_counter() - t_profile
+    best_np = params[best].numpy().astype(np.float64)
+    if sun_direction is None:
+        sun_direction = model.sun_direction(best_np)
+    # the sun's cones, as a single face's (f2l.estimate.uncertainty) from the combined search's
+    # scores and every face's pixels; none for a refit from a given light (no search)
+    uncertainty = None if combined is None or sun_direction is None else sun_uncertainty(
+        sun_direction, first.grid.directions_flat[combined.texels], combined.total, combined.yy,
+        getattr(jp, "normals", np.zeros((0, 3))), sun_core == 0.0, profile_dirs, mix)
+    spread_kappa = None
     with torch.no_grad():
         _, _ = jp.objective(params[best : best + 1], rho[best : best + 1], side[best : best + 1])
         per_face = jp.last_data[:, 0].numpy()
         w = torch.as_tensor(jp.weights, dtype=dtype)
         chosen = [best] if mix is None else [i for i in range(len(totals)) if mix[i] >= 1e-9 * mix.max()]  # as estimate()
         rads = first.radiance(params[chosen]).clone()
+        if cfg.sun_spread > 0 and uncertainty is not None and sun_core > 0:  # the sun spread, as estimate()
+            radius = np.radians(cfg.sun_spread * uncertainty.cone68_deg)
+            rads[:, : first.L_sky], kappas = spread_sky_radiance(model, params[chosen], radius)
+            spread_kappa = float(kappas[0 if mix is None else chosen.index(best)])
         if first.sky:
             rho_g = (side[chosen][:, :K] * w).sum(1) / w.sum()  # the faces' weighted ground albedo
             e_h = (first.e_sky[None, :, None] * rads[:, : first.L_sky]).sum(1)
@@ -438,9 +457,6 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
     probe = rad.numpy().reshape(grid.height, grid.width, 3).astype(np.float32)
     if not np.isfinite(probe).all():
         raise EstimationError("joint estimate: probe is not finite")
-    best_np = params[best].numpy().astype(np.float64)
-    if sun_direction is None:
-        sun_direction = model.sun_direction(best_np)
     gains = jp.gains(side[best : best + 1])[0].numpy() if jp.num_gains else np.ones(K)
     albedo = rho[best].numpy().astype(np.float64)
     wn = np.asarray(jp.weights) / np.sum(jp.weights)
@@ -452,7 +468,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
         probe=probe, sun_direction=sun_direction,
         timings={"precompute_s": sum(p.precompute_s for p in jp.faces), "search_s": search_s, "fit_s": fit_s,
                  "profile_s": profile_s, "total_s": runtime, "sun_core": sun_core},
-        start_losses=[float(v) for v in totals], num_pixels_used=int(sum(p.idx.size for p in jp.faces)))
+        start_losses=[float(v) for v in totals], num_pixels_used=int(sum(p.idx.size for p in jp.faces)),
+        sun_uncertainty=uncertainty, sun_spread_kappa=spread_kappa)
     index = list(range(K))
     fit = _Fit(weights=list(jp.weights), params=best_np, albedo=dict(zip(index, albedo)),
                ground=dict(zip(index, side[best, :K].numpy().astype(float) if first.sky else [None] * K)),

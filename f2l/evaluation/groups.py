@@ -67,9 +67,9 @@ def group_rows(render_dirs, fitted, model_name: str = "sunsky", sizes=SIZES, cfg
                     t = time.perf_counter()
                     try:
                         res = estimate(obs[i], model, cfg)
-                        singles[i] = (score(res.probe, res.sun_direction), time.perf_counter() - t)
+                        singles[i] = (score(res.probe, res.sun_direction), time.perf_counter() - t, _cones(res))
                     except EstimationError:
-                        singles[i] = (None, time.perf_counter() - t)
+                        singles[i] = (None, time.perf_counter() - t, None)
             ok = [singles[i][0] for i in range(n) if singles[i][0] is not None]
             if not ok:
                 continue
@@ -84,11 +84,42 @@ def group_rows(render_dirs, fitted, model_name: str = "sunsky", sizes=SIZES, cfg
                    "joint": score(joint.result.probe, joint.result.sun_direction), "uniform": uniform,
                    "single_s": float(sum(singles[i][1] for i in range(n))), "joint_s": joint_s,
                    "left_out": sum(not s.used for s in joint.faces),
-                   "left_out_reasons": [s.reason for s in joint.faces if not s.used]}
+                   "left_out_reasons": [s.reason for s in joint.faces if not s.used],
+                   "joint_cones": _cones(joint.result), "single_cones": [singles[i][2] for i in range(n)],
+                   "single_sun_ang": [None if singles[i][0] is None else singles[i][0][0] for i in range(n)]}
             rows.append(row)
             if progress is not None:
                 progress(row)
     return rows
+
+
+def _cones(result) -> list[float] | None:
+    """[r_68, r_90] (deg) of an estimate's sun (f2l.estimate.uncertainty), None without them."""
+    u = getattr(result, "sun_uncertainty", None)
+    return None if u is None else [float(u.cone68_deg), float(u.cone90_deg)]
+
+
+def cone_table(rows: list[dict], part: str | None = None) -> str:
+    """Markdown: per n, how often the true sun lies inside the joint's and the singles' 68% and
+    90% cones (clear skies), and the cones' mean radius."""
+    lines = ["| faces | joint: in 68% / 90% cone (mean r_90 °) | each face alone: in 68% / 90% cone (mean r_90 °) |",
+             "|---|---|---|"]
+    sel = [r for r in rows if (part is None or r["part"] == part) and not r["overcast"]]
+    for n in sorted({r["n"] for r in sel}):
+        joint = [(r["joint"][0], *r["joint_cones"]) for r in sel if r["n"] == n and r.get("joint_cones")
+                 and np.isfinite(r["joint"][0])]
+        alone = [(a, *c) for r in sel if r["n"] == n for a, c in zip(r.get("single_sun_ang", []), r.get("single_cones", []))
+                 if a is not None and c is not None and np.isfinite(a)]
+
+        def cell(v):
+            if not v:
+                return "–"
+            v = np.asarray(v, np.float64)
+            return (f"{np.mean(v[:, 0] <= v[:, 1]):.0%} / {np.mean(v[:, 0] <= v[:, 2]):.0%} of {len(v)} "
+                    f"({np.mean(v[:, 2]):.1f})")
+
+        lines.append(f"| {n} | {cell(joint)} | {cell(alone)} |")
+    return "\n".join(lines)
 
 
 def _part(case_id: str) -> str:
@@ -122,8 +153,9 @@ def write_group_report(rows: list[dict], out: Path) -> str:
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    text = "\n\n".join(f"### {title}\n\n{group_table(rows, part)}" for title, part in
-                       (("Reporting part (odd cases)", "report"), ("Tuning part (even cases)", "tune"), ("All", None)))
+    text = "\n\n".join(f"### {title}\n\n{group_table(rows, part)}\n\nThe sun's cones "
+                         f"(f2l.estimate.uncertainty):\n\n{cone_table(rows, part)}" for title, part in
+                         (("Reporting part (odd cases)", "report"), ("Tuning part (even cases)", "tune"), ("All", None)))
     write_text_atomic(out / "groups.md", text + "\n")
     write_text_atomic(out / "groups.json", json.dumps(rows, indent=1))
     return text

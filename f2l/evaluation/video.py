@@ -103,6 +103,12 @@ def _alone(frame_rgb, truth, model, cfg, landmarker, fit_options):
     return res.sun_direction, res.probe, time.perf_counter() - t0
 
 
+def _in_cone(errors: dict[int, float], rows: dict[int, dict], key: str) -> float | None:
+    """The share of the frames in ``errors`` (Sun-ang, deg) whose row's cone ``key`` holds the true sun."""
+    held = [errors[f] <= rows[f][key] for f in errors if rows[f].get(key) is not None]
+    return float(np.mean(held)) if held else None
+
+
 def eval_clip(clip_path: Path, truth: dict, render_dir: Path, out: Path, options, *, alone_every: int = 4,
               metrics_every: int = 8, landmarker=None) -> dict:
     """One clip's row (module docstring)."""
@@ -186,6 +192,8 @@ def eval_clip(clip_path: Path, truth: dict, render_dir: Path, out: Path, options
         "sun_ang_video_same_frames": float(np.mean(list(alone_video_err.values()))) if alone_err else None,
         "sun_ang_alone": float(np.mean(list(alone_err.values()))) if alone_err else None,
         "jitter_rms_deg": jitter_rms_deg(sorted(suns), suns, segment_of),
+        # the share of scored frames whose true sun lies in the window's 68% / 90% cone
+        "in_cone68": _in_cone(errors, rows, "sun_cone68_deg"), "in_cone90": _in_cone(errors, rows, "sun_cone90_deg"),
         "change_frame": change,
         "change_found": None if change is None else any(abs(s - change) <= DETECT_FRAMES for s in starts),
         "false_changes": sum(1 for s in starts if change is None or abs(s - change) > DETECT_FRAMES),
@@ -233,6 +241,10 @@ def _mean(rows, key):
     return float(np.mean(vals)) if vals else None
 
 
+def _pct(v) -> str:
+    return "–" if v is None else f"{v:.0%}"
+
+
 def video_table(rows: list[dict]) -> str:
     """The markdown tables: per clip, then per part and kind."""
     head = ("| clip | part | kind | Sun-ang ° clip (median) | same frames: clip → alone | jitter ° RMS | change found | "
@@ -247,7 +259,8 @@ def video_table(rows: list[dict]) -> str:
             f"{_fmt(r['mae_s_video'], 3)} / {_fmt(r['mae_s_alone'], 3)} | "
             f"{_fmt(r['full_domega_video'], 4)} / {_fmt(r['full_domega_alone'], 4)} | {_fmt(r['frames_per_s'])} |\n")
     lines.append("\n| part | clips | Sun-ang ° clip | same frames: clip → alone (ratio) | jitter ° RMS (static clips) | "
-                 "changes found | settles s (mean) | MAE (s) clip / alone | frames/s |\n|---|---|---|---|---|---|---|---|---|\n")
+                 "changes found | settles s (mean) | MAE (s) clip / alone | in 68% / 90% cone | frames/s |\n"
+                 "|---|---|---|---|---|---|---|---|---|---|\n")
     for part in ("tune", "report", "all"):
         sel = [r for r in rows if part == "all" or r["part"] == part]
         if not sel:
@@ -261,5 +274,5 @@ def video_table(rows: list[dict]) -> str:
             f"({_fmt(ratio, 2)}×) | {_fmt(_mean(static, 'jitter_rms_deg'), 2)} | "
             f"{sum(r['change_found'] for r in changes)}/{len(changes)} | {_fmt(_mean(sel, 'settle_s'), 2)} | "
             f"{_fmt(_mean(sel, 'mae_s_video'), 3)} / {_fmt(_mean(sel, 'mae_s_alone'), 3)} | "
-            f"{_fmt(_mean(sel, 'frames_per_s'))} |\n")
+            f"{_pct(_mean(sel, 'in_cone68'))} / {_pct(_mean(sel, 'in_cone90'))} | {_fmt(_mean(sel, 'frames_per_s'))} |\n")
     return "".join(lines)

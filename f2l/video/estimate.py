@@ -10,14 +10,17 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    jumps by more than ``change_ratio`` against the median of its last three frames: a cloud over
    the sun, walking into shade). Each change starts a new **segment**; nothing is shared across
    segments.
-2. **Sample** a face every ``sample_every`` frames (and at once in a new segment), fitted as a
+2. **Sample** a face every ``sample_every`` frames (and at once in a new segment; every
+   ``cold_sample_every`` frames, if more often, until the segment's first light), fitted as a
    photo's face is (:func:`f2l.face.fit.fit_face`, at ``resolution`` px) but with its transport
    read from the head's cached table (:mod:`f2l.video.head`) instead of ray casting. The window
    holds the segment's samples of the last ``window_s`` seconds, at most ``max_window_faces``
    (every person's: one camera, one sky); over that, the sample whose head pose is nearest
    another's leaves (a face seen from several sides constrains the sun).
 3. **Estimate** the window's light. The segment's first light waits (the clip is processed
-   offline) for ``cold_faces`` samples, or samples ``cold_span_s`` apart, or the segment's end; it
+   offline) for samples ``(cold_faces - 1) * sample_every`` frames apart (the time ``cold_faces``
+   samples take), or ``cold_span_s`` apart, or the segment's end, and keeps the most varied
+   ``max_window_faces`` of its denser samples; it
    is the full joint estimate (sun search, disagreeing faces left out, elevation profile), and so is
    the window's light every ``refit_every`` new samples after it. With ``warm_refit`` the later
    windows are instead refitted from the last light (:func:`f2l.estimate.joint.refit_joint`,
@@ -62,6 +65,10 @@ class VideoOptions:
 
     model: str = "sunsky"
     sample_every: int = 8  # frames between a face's samples
+    # before a segment's first light, a face is sampled this often if more often than
+    # ``sample_every`` (the first light keeps the most varied ``max_window_faces``); 4 was tried and
+    # dropped (docs/experiments/video_estimate.md, "Denser samples before the first light")
+    cold_sample_every: int = 8
     window_s: float = 4.0  # samples of the last so many seconds share one light
     max_window_faces: int = 6
     cold_faces: int = 6  # a segment's first light waits for this many samples, or
@@ -84,8 +91,10 @@ class VideoOptions:
     focal_px: float | None = None  # the focal length in px, where known (overrides focal_35mm_mm)
 
     def __post_init__(self) -> None:
-        if min(self.sample_every, self.max_window_faces, self.warm_iters, self.cold_faces, self.refit_every) < 1:
-            raise ValueError("sample_every, max_window_faces, cold_faces, refit_every and warm_iters must be >= 1")
+        if min(self.sample_every, self.cold_sample_every, self.max_window_faces, self.warm_iters, self.cold_faces,
+               self.refit_every) < 1:
+            raise ValueError("sample_every, cold_sample_every, max_window_faces, cold_faces, refit_every and "
+                             "warm_iters must be >= 1")
         if self.change_ratio <= 1.0 or self.window_s <= 0:
             raise ValueError("change_ratio must be > 1 and window_s > 0")
 
@@ -121,6 +130,9 @@ class SampleEstimate:
     residual: dict  # (frame, person) -> the face's data term under this light
     cold: bool
     runtime_s: float
+    # the sun's cones of a full joint estimate (f2l.estimate.uncertainty): r_68, r_90 (deg) and the
+    # predicted relit-scene MAE (s); None for a warm refit (no search)
+    cones: tuple[float, float, float] | None = None
 
 
 @dataclass
@@ -332,6 +344,8 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
     segments: list[tuple[int, str]] = []
     window: deque[Sample] = deque()
     last_sample: dict[int, int] = {}
+    first_sample_frame: int | None = None  # the segment's first sample
+    cold_span_frames = (options.cold_faces - 1) * options.sample_every
     segment = -1
     spent = {"track_s": 0.0, "fit_s": 0.0, "estimate_s": 0.0, "change_s": 0.0}
     n_frames = 0
@@ -369,6 +383,9 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
             segments.append((tf.index, why or "start"))
             window.clear()
             last_sample.clear()
+            first_sample_frame = None
+        lit = bool(estimates) and estimates[-1].segment == segment
+        every = options.sample_every if lit else min(options.cold_sample_every, options.sample_every)
         photo = None
         new = False
         frame_rows = []
@@ -379,7 +396,7 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
             frame_rows.append(row)
             if face.status != "ok" or face.landmarks is None:
                 continue
-            due = face.person not in last_sample or tf.index - last_sample[face.person] >= options.sample_every
+            due = face.person not in last_sample or tf.index - last_sample[face.person] >= every
             if not due:
                 continue
             t0 = time.perf_counter()
@@ -399,19 +416,23 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
                                  yaw_deg=fitted.head.yaw_deg, pitch_deg=fitted.head.pitch_deg, row=row))
             row["sample"] = True
             new = True
+            if first_sample_frame is None:
+                first_sample_frame = tf.index
         rows.extend(frame_rows)
         if new:
-            lit = bool(estimates) and estimates[-1].segment == segment
             while window and tf.time_s - window[0].time_s > options.window_s:
                 window.popleft()
             while len(window) > options.max_window_faces:
                 del window[_most_redundant(window)]
-            # offline: a segment's first light waits for ``cold_faces`` samples or ``cold_span_s``
-            # seconds of them (every frame of the segment then gets it); later ones follow each sample
+            # offline: a segment's first light waits for samples over the time ``cold_faces`` samples
+            # take, or ``cold_span_s`` seconds of them (every frame of the segment then gets it);
+            # later ones follow every ``refit_every`` new samples
             span = window[-1].time_s - window[0].time_s if window else 0.0
             fresh = sum(1 for w in window if w.frame > estimates[-1].frame) if lit else 0
-            if (fresh >= options.refit_every if lit
-                    else len(window) >= options.cold_faces or (len(window) > 1 and span >= options.cold_span_s)):
+            cold_due = (window and first_sample_frame is not None
+                        and (window[-1].frame - first_sample_frame >= cold_span_frames
+                             or (len(window) > 1 and span >= options.cold_span_s)))
+            if fresh >= options.refit_every if lit else cold_due:
                 run_window(tf)
         report.advance()
         t_track = time.perf_counter()
@@ -449,13 +470,15 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
     except errors:
         return None
     used = [s for s, share in zip(window, shares) if share.used]
+    u = getattr(result, "sun_uncertainty", None)
+    cones = None if u is None else (float(u.cone68_deg), float(u.cone90_deg), float(u.predicted_mae_s))
     residual = {(s.frame, s.person): share.data for s, share in zip(window, shares) if share.data is not None}
     return SampleEstimate(frame=tf.index, time_s=float(np.mean([s.time_s for s in used] or [tf.time_s])),
                           segment=segment, params=np.asarray(result.params, np.float64),
                           sun_direction=None if result.sun_direction is None else np.asarray(result.sun_direction),
                           ground_albedo=result.ground_albedo, window=[s.frame for s in used],
                           persons=[s.person for s in used], residual=residual, cold=last is None,
-                          runtime_s=time.perf_counter() - t0)
+                          runtime_s=time.perf_counter() - t0, cones=cones)
 
 
 def _most_redundant(window) -> int:
@@ -489,7 +512,8 @@ def _fill_rows(rows: list[dict], estimates: list[SampleEstimate], model) -> None
     for row in rows:
         seg = by_segment.get(row["segment"])
         row.update(params=None, sun_direction=None, sun_elevation_deg=None, sun_azimuth_deg=None, window=None,
-                   residual=None, ground_albedo=None, estimate_frame=None)
+                   residual=None, ground_albedo=None, estimate_frame=None, sun_cone68_deg=None, sun_cone90_deg=None,
+                   predicted_mae_s=None)
         if not seg:
             continue
         times = np.array([e.time_s for e in seg])
@@ -500,6 +524,8 @@ def _fill_rows(rows: list[dict], estimates: list[SampleEstimate], model) -> None
         sun = model.sun_direction(params) if hasattr(model, "sun_direction") else None
         row.update(params=[float(v) for v in params], window=list(near.window), estimate_frame=near.frame,
                    ground_albedo=near.ground_albedo, residual=near.residual.get((row["frame"], row["person"])))
+        if near.cones is not None:  # the nearest window's cones (a frame between two: the nearer's)
+            row.update(sun_cone68_deg=near.cones[0], sun_cone90_deg=near.cones[1], predicted_mae_s=near.cones[2])
         if sun is not None:
             el, az = angles_from_direction(np.asarray(sun, np.float64))
             row.update(sun_direction=[float(v) for v in sun], sun_elevation_deg=math.degrees(float(el)),

@@ -5,7 +5,9 @@
                        segment, whether the frame was sampled, the light's parameters, the sun's
                        direction, elevation and azimuth (degrees, f2l's grid convention: azimuth 0
                        = the camera's -Z, +90° = +X), the window (frames of the samples) the light
-                       came from, the face's residual under it (sampled frames), the probe's path.
+                       came from, the face's residual under it (sampled frames), the probe's path,
+                       the sun's 68% / 90% cones (deg) and the predicted relit-scene MAE (s) of
+                       the window's estimate (f2l.estimate.uncertainty; null for warm refits).
                        A frame without any known person has one row with person -1.
   ``probes/<model>/frame-NNNNNN.exr``  the light of every ``every``-th frame (lat-long, +Y up,
                        relative units: the clip's linear values).
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-FRAMES_SCHEMA_VERSION = 1
+FRAMES_SCHEMA_VERSION = 2  # 2: the sun cone columns
 PREVIEW_HEIGHT = 360
 
 
@@ -58,7 +60,9 @@ def write_probes(rows: list[dict], model, out: Path, model_name: str, every: int
         write_exr(out / rel, _probe(model, row["params"], row["ground_albedo"]),
                   metadata={"f2l_model": model_name, "f2l_frame": str(frame), "f2l_time_s": repr(float(row["time_s"])),
                             "f2l_segment": str(row["segment"]), "f2l_convention": "latlong,+Y up,centre=-Z",
-                            "f2l_units": "relative: the clip's linear values (1 = full scale)"})
+                            "f2l_units": "relative: the clip's linear values (1 = full scale)",
+                            **{f"f2l_{k}": "" if row.get(k) is None else repr(float(row[k]))
+                               for k in ("sun_cone68_deg", "sun_cone90_deg", "predicted_mae_s")}})
         written[frame] = rel
     return written
 
@@ -75,6 +79,7 @@ def write_frames_table(rows: list[dict], out: Path, param_names: list[str], prob
         "sun_direction": pa.list_(pa.float64()), "sun_elevation_deg": pa.float64(), "sun_azimuth_deg": pa.float64(),
         "ground_albedo": pa.float64(), "window": pa.list_(pa.int64()), "estimate_frame": pa.int64(),
         "residual": pa.float64(), "probe_path": pa.string(),
+        "sun_cone68_deg": pa.float64(), "sun_cone90_deg": pa.float64(), "predicted_mae_s": pa.float64(),
     }
     data = {name: [] for name in columns}
     for row in rows:
