@@ -113,11 +113,46 @@ def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(fa
     shaded = joint.faces[3]
     assert not shaded.used and "disagrees" in shaded.reason and shaded.agreement > DISAGREE_RATIO
     assert all(s.used for s in joint.faces[:3])
+    # the shaded face shows none of the group's sun, the sunlit ones all of it (sun_search.sun_seen)
+    assert shaded.sun_seen < 0.2 and shaded.sun_share > 0.2
+    assert all(0.7 < s.sun_seen < 1.3 and s.sun_share > 0.2 for s in joint.faces[:3])
     without = estimate_joint(observations[:3], sunsky, CFG)
     assert np.array_equal(joint.result.params, without.result.params)
     assert _angle_deg(joint.result.sun_direction, SUN) < 8.0
     kept = estimate_joint(observations, sunsky, CFG, disagree_ratio=None)
     assert all(s.used for s in kept.faces)  # the check can be turned off
+
+
+def test_a_face_that_shows_none_of_the_groups_sun_is_left_out_as_in_shade(faces, sunsky, monkeypatch):
+    """The rule's wiring: with the residual tests out of the way (a very high limit) and face 2
+    read as showing none of the sun (its measure is checked above on a truly shaded face), face
+    2 leaves with the reason, and the result is the group without it, bit for bit."""
+    import f2l.estimate.joint as joint_module
+
+    real = joint_module._sun_seen
+
+    def seen_but_2_blind(problems, fit, cfg):
+        out = real(problems, fit, cfg)
+        return {i: ((0.01, 0.5) if i == 2 else (max(v[0], 0.9), max(v[1], 0.3))) for i, v in out.items()}
+
+    monkeypatch.setattr(joint_module, "_sun_seen", seen_but_2_blind)
+    observations = [_obs(f, str(i)) for i, f in enumerate(faces[:3])]
+    joint = estimate_joint(observations, sunsky, CFG, disagree_ratio=100.0)
+    assert [s.used for s in joint.faces] == [True, True, False]
+    assert joint.faces[2].reason.startswith("shows 0.01 of the group's sun") and "in shade" in joint.faces[2].reason
+    without = estimate_joint(observations[:2], sunsky, CFG, disagree_ratio=100.0)
+    assert np.array_equal(joint.result.params, without.result.params)
+
+
+def test_the_sun_seen_rule_needs_a_photo_mate_that_shows_the_sun():
+    from f2l.estimate.joint import _sees_no_sun
+
+    groups = np.array([0, 0, 0, 1])
+    seen = {0: (0.02, 0.4), 1: (0.9, 0.4), 2: (1.1, 0.3), 3: (0.01, 0.5)}
+    assert _sees_no_sun(seen, [0, 1, 2, 3], groups) == 0  # face 3 has no photo-mate to compare with
+    assert _sees_no_sun({**seen, 0: (0.02, 0.1)}, [0, 1, 2, 3], groups) is None  # the sun barely lights it
+    assert _sees_no_sun({**seen, 1: (0.1, 0.4), 2: (0.3, 0.3)}, [0, 1, 2, 3], groups) is None  # none shows it
+    assert _sees_no_sun(seen, [1, 2, 3], groups) is None  # face 0 already out
 
 
 def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):

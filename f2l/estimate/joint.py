@@ -20,7 +20,7 @@ with the sun's elevation profile, as one face is (f2l.estimate.estimator). Linea
 the stacked least squares, other models from their initial points; all then run the same batched
 L-BFGS. Latent-sky models have their own joint fit (f2l.estimate.latent_joint).
 
-Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found in three
+Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found in four
 ways (compact-sun models; docs/experiments/joint_estimate.md):
 
 1. A face's ``agreement`` is its relative residual under a light (one free scale per channel) over
@@ -31,7 +31,11 @@ ways (compact-sun models; docs/experiments/joint_estimate.md):
 2. After each fit, while the worst face's agreement with the fitted light exceeds the ratio, it is
    left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
    its own light (the darker one leaves the group).
-3. A face far darker than its photo's other faces under the joint light (albedo below
+3. A face that shows none of the joint light's sun while a photo-mate shows it
+   (``sun_search.sun_seen``: its shading fitted as free multiples of the light's sky part and sun
+   part; below ``SUN_SEEN_MIN`` of the sun where the sun makes ``SUN_SHARE_MIN`` of its shading)
+   is left out: a face in an occluder's shadow is lit by the sky alone.
+4. A face far darker than its photo's other faces under the joint light (albedo below
    ``DARK_RATIO`` x their median) is left out too: under the group's sun a face in shade reads as
    a much darker skin.
 
@@ -51,7 +55,8 @@ import torch
 from f2l.estimate import sun_search
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import _sun_share, estimate, fitted_starts
-from f2l.estimate.joint_common import (DARK_RATIO, DISAGREE_RATIO, SIGMA_MODEL, FaceShare, JointResult,  # noqa: F401
+from f2l.estimate.joint_common import (DARK_RATIO, DISAGREE_RATIO, SIGMA_MODEL, SUN_SEEN_MIN, SUN_SEEN_PEER,  # noqa: F401
+                                       SUN_SHARE_MIN, FaceShare, JointResult,
                                        JointUnsupported, darkness, face_noise, face_weights)
 from f2l.estimate.latent_joint import estimate_joint_latent
 from f2l.estimate.lbfgs import minimise, run_lbfgs
@@ -201,6 +206,8 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         raise EstimationError("joint estimate: no usable face (" + "; ".join(s.reason for s in shares) + ")")
     torch.set_num_threads(1)
     seen_agreement: dict[int, float] = {}
+    seen_sun: dict[int, tuple[float, float]] = {}
+    seen_dark: dict[int, float] = {}
     if disagree_ratio is not None and len(active) > 2 and problems[active[0]].hybrid is not None:
         support = _consensus(problems, active, cfg, disagree_ratio)
         for i in active:
@@ -215,10 +222,13 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
                                  None if albedo_group is None else [albedo_group[i] for i in active], share_parts)
         agreement = _agreements(problems, fit, cfg) if fit is not None else {}
         seen_agreement.update(agreement)
+        seen = _sun_seen(problems, fit, cfg) if fit is not None else {}
+        seen_sun.update(seen)
         if disagree_ratio is None or fit is None:
             break
         shade = darkness({i: fit.albedo[j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active},
                          gloss=problems[active[0]].gloss)
+        seen_dark.update(shade)
         worst = max(active, key=lambda i: agreement.get(i, 0.0))
         if agreement.get(worst, 0.0) > disagree_ratio:
             if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
@@ -228,6 +238,10 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
             else:
                 why = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
                        f"(limit {disagree_ratio:.2f}); left out")
+        elif (blind := _sees_no_sun(seen, active, groups)) is not None:
+            worst = blind
+            why = (f"shows {seen[worst][0]:.2f} of the group's sun where the sun makes {seen[worst][1]:.0%} of its "
+                   f"shading under the group's light (limit {SUN_SEEN_MIN:.2f}), as a face in shade does; left out")
         else:
             worst = min(active, key=lambda i: shade[i])
             if shade[worst] >= DARK_RATIO:
@@ -238,6 +252,8 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         active = [i for i in active if i != worst]
     for i, s in enumerate(shares):
         s.agreement = seen_agreement.get(i)
+        s.sun_seen, s.sun_share = seen_sun.get(i, (None, None))
+        s.darkness = seen_dark.get(i)
     if fit is None:  # one face left: its own estimate
         shares[active[0]].weight = 1.0
         shares[active[0]].albedo, shares[active[0]].ground_albedo = result.albedo, result.ground_albedo
@@ -504,23 +520,48 @@ def _agreements(problems: dict[int, FaceProblem], fit: _Fit, cfg: EstimatorConfi
     """Each face's agreement with the fit's light (module docstring): {face index: ratio} for the
     faces the fit used (by their index in ``fit``) and every other problem given. Compact-sun
     models only; empty for others."""
-    fitted = fit.problems
-    if fitted[0].hybrid is None:
+    light = _search_light(fit)
+    if light is None:
         return {}
-    first = fitted[0]
-    model, grid = first.model, first.grid
-    params = torch.as_tensor(fit.params[None])
+    texel, m_unit, w_sky, w_sun = light
+    return {i: _ratio(p, texel, m_unit, w_sky, w_sun, cfg) for i, p in problems.items()}
+
+
+def _sun_seen(problems: dict[int, FaceProblem], fit: _Fit, cfg: EstimatorConfig) -> dict[int, tuple[float, float]]:
+    """Each face's (seen, share) of the fit's sun (``sun_search.sun_seen``), for every problem
+    given; empty for models without a compact sun."""
+    light = _search_light(fit)
+    if light is None:
+        return {}
+    texel, m_unit, w_sky, w_sun = light
+    return {i: sun_search.sun_seen(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
+                                   p.grid, texel, m_unit, _e_blocks(p), cfg.ground_albedo_init, w_sky, w_sun)
+            for i, p in problems.items()}
+
+
+def _sees_no_sun(seen: dict[int, tuple[float, float]], active: list[int], groups) -> int | None:
+    """The face that shows least of the group's sun (``SUN_SEEN_MIN``, where the sun makes
+    ``SUN_SHARE_MIN`` of its shading) while a face of its photo shows ``SUN_SEEN_PEER`` of it;
+    None if none. A light whose sun no face shows is the light's fault, not a face's."""
+    told = [i for i in active if i in seen and seen[i][1] >= SUN_SHARE_MIN]
+    blind = [i for i in told if seen[i][0] < SUN_SEEN_MIN
+             and any(seen[j][0] >= SUN_SEEN_PEER for j in told if j != i and groups[j] == groups[i])]
+    return min(blind, key=lambda i: seen[i][0]) if blind else None
+
+
+def _search_light(fit: _Fit):
+    """The fit's light in the search's terms: (sun texel, unit sky block means (nb, 3), w_sky,
+    w_sun); None for models without a compact sun."""
+    first = fit.problems[0]
+    if first.hybrid is None:
+        return None
+    model = first.model
     with torch.no_grad():
-        sky, w_sky, sun = model.light_parts(params)
+        sky, w_sky, _ = model.light_parts(torch.as_tensor(fit.params[None]))
         m_unit, _ = first.hybrid.sky_summary(sky, first.e_sky)
-    layout = model.sun_layout
-    w_sun = fit.params[list(layout.sun_rgb)]
-    direction = model.sun_direction(fit.params)
-    texel = _nearest_texel(grid, direction)
-    out = {}
-    for i, p in problems.items():
-        out[i] = _ratio(p, texel, m_unit[0].numpy(), w_sky[0].numpy(), w_sun, cfg)
-    return out
+    w_sun = fit.params[list(model.sun_layout.sun_rgb)]
+    texel = _nearest_texel(first.grid, model.sun_direction(fit.params))
+    return texel, m_unit[0].numpy(), w_sky[0].numpy(), w_sun
 
 
 def _setup(p: FaceProblem):

@@ -15,6 +15,12 @@ from f2l.estimate.observation import EstimationError, FaceObservation, usable_pi
 SIGMA_MODEL = 0.05  # the relative misfit of the forward model itself, added to each face's noise
 DISAGREE_RATIO = 2.0  # agreement above this: the face does not share the group's light
 DARK_RATIO = 0.3  # a face whose albedo is below this x its photo-mates' median is left out (in shade)
+# a face that shows less than SUN_SEEN_MIN of the group's sun, where the sun makes at least
+# SUN_SHARE_MIN of its predicted shading and a photo-mate shows at least SUN_SEEN_PEER of it, is
+# left out (in shade; sun_search.sun_seen); read off make eval-shade's seed 11 (docs/experiments/joint_estimate.md)
+SUN_SEEN_MIN = 0.15
+SUN_SHARE_MIN = 0.15
+SUN_SEEN_PEER = 0.5
 
 
 class JointUnsupported(EstimationError):
@@ -34,6 +40,11 @@ class FaceShare:
     gain: float = 1.0
     data: float | None = None
     agreement: float | None = None
+    # how much of the joint light's sun the face shows (1 lit as the light says, 0 none) and the
+    # sun's share of its predicted shading (``sun_search.sun_seen``); None where not measured
+    sun_seen: float | None = None
+    sun_share: float | None = None
+    darkness: float | None = None  # its apparent albedo over its photo-mates' median (``darkness``)
     used: bool = True
     reason: str = ""
 

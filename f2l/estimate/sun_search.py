@@ -209,6 +209,32 @@ def relative_residual(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, 
     return float((resid * resid).sum() / max(float((yw * yw).sum()), 1e-300))
 
 
+def sun_seen(t_blk: np.ndarray, g: np.ndarray, columns, y: np.ndarray, grid: LatLongGrid, sun_texel: int,
+             sky_block_means: np.ndarray, e_blocks: np.ndarray, ground_albedo: float,
+             w_sky: np.ndarray, w_sun: np.ndarray) -> tuple[float, float]:
+    """How much of a given light's sun a face shows, in the search's metric: (seen, share).
+
+    The face's shading is fitted as a_c (sky part) + b_c (sun part) of the light w_sky ⊙ f + w_sun ⊙
+    (a point sun at ``sun_texel``), with a free non-negative scale for each part and channel
+    (``_nnls2``); ``seen`` is the luminance-weighted mean of b_c / a_c (1: the face is lit as the
+    light says, 0: it shows the sky's light and none of the sun's, as a face in an occluder's
+    shadow). ``share`` is the sun part's share of the light's predicted shading (luminance): where
+    it is small the face cannot tell. ``sky_block_means`` (nb, 3) the unit sky f's block means."""
+    rows, wts, Zw, yw = _weighted_rows(t_blk, g, y)
+    c = columns(np.asarray([sun_texel]), rows=rows)[:, 0] / grid.solid_angles_flat[sun_texel]
+    rg = ground_albedo / math.pi
+    b = (c + rg * grid.directions_flat[sun_texel, 1] * g[rows]) * wts
+    u = _sky_coefficients(sky_block_means, e_blocks, rg)  # (3, nb + 1)
+    sky = (Zw @ u.T) * np.asarray(w_sky)[None, :]  # (n', 3)
+    sun = b[:, None] * np.asarray(w_sun)[None, :]
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    share = float((sun.sum(0) @ lum) / max(float((sky + sun).sum(0) @ lum), 1e-300))
+    x1, x2, _ = _nnls2((sky * sky).sum(0), (sky * sun).sum(0), (sun * sun).sum(0), (sky * yw).sum(0),
+                       (sun * yw).sum(0))
+    ratio = np.where(x1 > 1e-300, x2 / np.maximum(x1, 1e-300), np.where(x2 > 0, np.inf, 1.0))
+    return float(np.clip(ratio, 0.0, 10.0) @ lum), share
+
+
 def _candidate(grid, texels, flat, S, x1, x2, total) -> SunCandidate:
     i, j = divmod(int(flat), S)
     d = grid.directions_flat[texels[i]]

@@ -114,6 +114,9 @@ def shade_rows(render_dirs, fitted, model_name: str = "sunsky", cfg: EstimatorCo
             if variant == "check on":
                 row["flagged"] = not joint.faces[k].used
                 row["agreements"] = [s.agreement for s in joint.faces]
+                row["sun_seen"] = [s.sun_seen for s in joint.faces]
+                row["sun_share"] = [s.sun_share for s in joint.faces]
+                row["darkness"] = [s.darkness for s in joint.faces]
                 row["reasons"] = [s.reason for s in joint.faces]
                 row["sunlit_flagged"] = sum(not s.used for i, s in enumerate(joint.faces) if i != k)
         row["shaded_index"] = k
