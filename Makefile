@@ -127,13 +127,17 @@ prior: $(STAMP)
 # on seed 11 with --shade-one (a dark board puts one person's face in its shadow where the sky is clear, the
 # sun lights that face and the board can stay off the others and off the faces: 38 of the 200), fitted, then
 # each shaded photo estimated jointly with the check on, without the shaded face and with the check off
-# (sunsky); tables in build/eval_shade/report/shade.md. About 1.5 h on 2 cores; the renders are resumable.
+# (sunsky); tables in build/eval_shade/report/shade.md. Seed 11 tunes the rules, seed 12 (55 shaded photos
+# of 200) reports: build/eval_shade_s12/report/shade.md. About 1.5 h a seed on 2 cores; the renders are resumable.
 EVAL_SHADE := build/eval_shade
 .PHONY: eval-shade
 eval-shade: $(STAMP)
 	$(BIN)/f2l eval render-faces --framing group --shade-one --out $(EVAL_SHADE)/render --n 200 --seed 11 --image-px 1280 --spp 8 --json
 	$(BIN)/f2l fit-faces $(EVAL_SHADE)/render/photos --out $(EVAL_SHADE)/fitted --json
 	$(BIN)/f2l eval shade $(EVAL_SHADE)/render --fitted $(EVAL_SHADE)/fitted --out $(EVAL_SHADE)/report
+	$(BIN)/f2l eval render-faces --framing group --shade-one --out $(EVAL_SHADE)_s12/render --n 200 --seed 12 --image-px 1280 --spp 8 --json
+	$(BIN)/f2l fit-faces $(EVAL_SHADE)_s12/render/photos --out $(EVAL_SHADE)_s12/fitted --json
+	$(BIN)/f2l eval shade $(EVAL_SHADE)_s12/render --fitted $(EVAL_SHADE)_s12/fitted --out $(EVAL_SHADE)_s12/report
 
 # Rebuild the shipped sky-autoencoder weights (+ latent prior, model card, loss curve) from the
 # project's own sky corpus (docs/ae.md): 16.5 min on 2 cores; bit-identical tensors on the machine that
