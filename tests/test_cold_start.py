@@ -93,7 +93,11 @@ def test_pyarrow_with_pandas_hidden_converts_to_the_same_parquet_bytes():
         "lengths = pa.compute.list_value_length(back['l'].combine_chunks()).to_numpy(zero_copy_only=False)\n"
         "try:\n    import pandas\n    refused = False\nexcept ImportError:\n    refused = True\n"
         "print(json.dumps([hidden, 'pandas' in sys.modules, refused, sink.getvalue().hex(),"
-        " back.to_pylist()[2]['s'], str(lengths.tolist())]))")
+        " back.to_pylist()[2]['s'], str(lengths.tolist())]))\n"
+        # it ends as the forked fit's child does (f2l.io.forked: os._exit): the interpreter's own
+        # teardown aborted once in a CI run ("terminate called without an active exception", after
+        # this output; 0 of 86 reruns) and is not what this test is about
+        "sys.stdout.flush(); import os; os._exit(0)\n")
     hidden, loaded, refused, with_hidden, last, lengths = json.loads(_fresh_python(code))
     assert hidden and not loaded and refused and last == "c" and lengths == "[2.0, 0.0, nan]"
     plain = json.loads(_fresh_python(code.replace("hidden = hide() == ('pandas', 'networkx')", "hidden = True")))
