@@ -127,15 +127,15 @@ def test_a_face_that_shows_none_of_the_groups_sun_is_left_out_as_in_shade(faces,
     """The rule's wiring: with the residual tests out of the way (a very high limit) and face 2
     read as showing none of the sun (its measure is checked above on a truly shaded face), face
     2 leaves with the reason, and the result is the group without it, bit for bit."""
-    import f2l.estimate.joint as joint_module
+    from f2l.estimate import joint_faces
 
-    real = joint_module._sun_seen
+    real = joint_faces.sun_seen_of
 
     def seen_but_2_blind(problems, fit, cfg):
         out = real(problems, fit, cfg)
         return {i: ((0.01, 0.5) if i == 2 else (max(v[0], 0.9), max(v[1], 0.3))) for i, v in out.items()}
 
-    monkeypatch.setattr(joint_module, "_sun_seen", seen_but_2_blind)
+    monkeypatch.setattr(joint_faces, "sun_seen_of", seen_but_2_blind)
     observations = [_obs(f, str(i)) for i, f in enumerate(faces[:3])]
     joint = estimate_joint(observations, sunsky, CFG, disagree_ratio=100.0)
     assert [s.used for s in joint.faces] == [True, True, False]
@@ -145,14 +145,14 @@ def test_a_face_that_shows_none_of_the_groups_sun_is_left_out_as_in_shade(faces,
 
 
 def test_the_sun_seen_rule_needs_a_photo_mate_that_shows_the_sun():
-    from f2l.estimate.joint import _sees_no_sun
+    from f2l.estimate.joint_faces import sees_no_sun
 
     groups = np.array([0, 0, 0, 1])
     seen = {0: (0.02, 0.4), 1: (0.9, 0.4), 2: (1.1, 0.3), 3: (0.01, 0.5)}
-    assert _sees_no_sun(seen, [0, 1, 2, 3], groups) == 0  # face 3 has no photo-mate to compare with
-    assert _sees_no_sun({**seen, 0: (0.02, 0.1)}, [0, 1, 2, 3], groups) is None  # the sun barely lights it
-    assert _sees_no_sun({**seen, 1: (0.1, 0.4), 2: (0.3, 0.3)}, [0, 1, 2, 3], groups) is None  # none shows it
-    assert _sees_no_sun(seen, [1, 2, 3], groups) is None  # face 0 already out
+    assert sees_no_sun(seen, [0, 1, 2, 3], groups) == 0  # face 3 has no photo-mate to compare with
+    assert sees_no_sun({**seen, 0: (0.02, 0.1)}, [0, 1, 2, 3], groups) is None  # the sun barely lights it
+    assert sees_no_sun({**seen, 1: (0.1, 0.4), 2: (0.3, 0.3)}, [0, 1, 2, 3], groups) is None  # none shows it
+    assert sees_no_sun(seen, [1, 2, 3], groups) is None  # face 0 already out
 
 
 def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):

@@ -20,24 +20,8 @@ with the sun's elevation profile, as one face is (f2l.estimate.estimator). Linea
 the stacked least squares, other models from their initial points; all then run the same batched
 L-BFGS. Latent-sky models have their own joint fit (f2l.estimate.latent_joint).
 
-Faces that disagree (one in another's shadow, under a hat, lit by a reflector) are found in four
-ways (compact-sun models; docs/experiments/joint_estimate.md):
-
-1. A face's ``agreement`` is its relative residual under a light (one free scale per channel) over
-   its residual under the best light of its own sun search, in the search's metric
-   (``sun_search.relative_residual``). Before any fit, with three faces or more, every face's own
-   best light is tried on every face; the light most faces agree with (within ``DISAGREE_RATIO``)
-   decides who joins (``_consensus``): a shaded face cannot pull the fit's sun away first.
-2. After each fit, while the worst face's agreement with the fitted light exceeds the ratio, it is
-   left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
-   its own light (the darker one leaves the group).
-3. A face that shows none of the joint light's sun while a photo-mate shows it
-   (``sun_search.sun_seen``: its shading fitted as free multiples of the light's sky part and sun
-   part; below ``SUN_SEEN_MIN`` of the sun where the sun makes ``SUN_SHARE_MIN`` of its shading)
-   is left out: a face in an occluder's shadow is lit by the sky alone.
-4. A face far darker than its photo's other faces under the joint light (albedo below
-   ``DARK_RATIO`` x their median) is left out too: under the group's sun a face in shade reads as
-   a much darker skin.
+Faces that disagree with the group's light (in another's shadow, under a hat, lit by a reflector,
+showing none of the sun) are left out and the rest refitted (f2l.estimate.joint_faces).
 
 The result without a face is the result of the group without that face, bit for bit. A group of one
 is :func:`f2l.estimate.estimator.estimate`.
@@ -45,19 +29,17 @@ is :func:`f2l.estimate.estimator.estimate`.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from f2l.estimate import sun_search
+from f2l.estimate import joint_faces, sun_search
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import _sun_share, estimate, fitted_starts
-from f2l.estimate.joint_common import (DARK_RATIO, DISAGREE_RATIO, SIGMA_MODEL, SUN_SEEN_MIN, SUN_SEEN_PEER,  # noqa: F401
-                                       SUN_SHARE_MIN, FaceShare, JointResult,
-                                       JointUnsupported, darkness, face_noise, face_weights)
+from f2l.estimate.joint_common import (DISAGREE_RATIO, FaceShare, JointResult, JointUnsupported,  # noqa: F401
+                                       face_noise, face_weights)
 from f2l.estimate.latent_joint import estimate_joint_latent
 from f2l.estimate.lbfgs import minimise, run_lbfgs
 from f2l.estimate.observation import EstimationError, FaceObservation
@@ -67,7 +49,6 @@ from f2l.estimate.skin import skin_albedo_mean
 from f2l.estimate.sun_profile import elevation_posterior
 from f2l.estimate.sun_spread import spread_sky_radiance
 from f2l.estimate.uncertainty import sun_uncertainty
-from f2l.lighting.grid import LatLongGrid
 from f2l.models.base import LightingModel
 from f2l.models.capabilities import LatentSky
 
@@ -209,7 +190,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     seen_sun: dict[int, tuple[float, float]] = {}
     seen_dark: dict[int, float] = {}
     if disagree_ratio is not None and len(active) > 2 and problems[active[0]].hybrid is not None:
-        support = _consensus(problems, active, cfg, disagree_ratio)
+        support = joint_faces.consensus(problems, active, cfg, disagree_ratio)
         for i in active:
             if support[i] > disagree_ratio:
                 shares[i].used = False
@@ -220,34 +201,18 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
         result, fit = _fit_group([observations[i] for i in active], [problems.get(i) for i in active], model, cfg,
                                  [noise[i] for i in active], groups[active],
                                  None if albedo_group is None else [albedo_group[i] for i in active], share_parts)
-        agreement = _agreements(problems, fit, cfg) if fit is not None else {}
-        seen_agreement.update(agreement)
-        seen = _sun_seen(problems, fit, cfg) if fit is not None else {}
-        seen_sun.update(seen)
-        if disagree_ratio is None or fit is None:
+        if fit is None:
             break
-        shade = darkness({i: fit.albedo[j] for j, i in enumerate(active)}, {i: int(groups[i]) for i in active},
-                         gloss=problems[active[0]].gloss)
+        agreement = joint_faces.agreements(problems, fit, cfg)
+        seen = joint_faces.sun_seen_of(problems, fit, cfg)
+        seen_agreement.update(agreement)
+        seen_sun.update(seen)
+        if disagree_ratio is None:
+            break
+        worst, why, shade = joint_faces.leaving(fit, active, groups, agreement, seen, disagree_ratio)
         seen_dark.update(shade)
-        worst = max(active, key=lambda i: agreement.get(i, 0.0))
-        if agreement.get(worst, 0.0) > disagree_ratio:
-            if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
-                worst = min(active, key=lambda i: shade[i])
-                why = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own best, limit "
-                       f"{disagree_ratio:.2f}): each keeps its own estimate")
-            else:
-                why = (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
-                       f"(limit {disagree_ratio:.2f}); left out")
-        elif (blind := _sees_no_sun(seen, active, groups)) is not None:
-            worst = blind
-            why = (f"shows {seen[worst][0]:.2f} of the group's sun where the sun makes {seen[worst][1]:.0%} of its "
-                   f"shading under the group's light (limit {SUN_SEEN_MIN:.2f}), as a face in shade does; left out")
-        else:
-            worst = min(active, key=lambda i: shade[i])
-            if shade[worst] >= DARK_RATIO:
-                break
-            why = (f"too dark for the group's light: its albedo is {shade[worst]:.2f}x its photo's other faces' "
-                   f"median (limit {DARK_RATIO:.2f}), as a face in shade is; left out")
+        if worst is None:
+            break
         shares[worst].used, shares[worst].reason = False, why
         active = [i for i in active if i != worst]
     for i, s in enumerate(shares):
@@ -275,7 +240,8 @@ def _renumber(groups) -> np.ndarray:
 
 @dataclass
 class _Fit:
-    """What the agreement test and the face rows need of a joint fit (keyed by face index)."""
+    """What the tests of f2l.estimate.joint_faces and the face rows need of a joint fit (keyed by
+    face index; ``problems``, the fitted faces' problems, set after the fit)."""
 
     weights: list[float]
     params: np.ndarray
@@ -357,8 +323,8 @@ def _fit(jp: JointProblem, model, cfg: EstimatorConfig, t_start: float, face_ids
         if start is not None:  # the light's own parameters, as the search's starts give them
             theta0 = _inside(np.asarray(start, np.float64).reshape(1, -1), lo, hi)
         else:
-            setup = _setup(first)
-            scores = [_scores(p, setup, cfg) for p in jp.faces]
+            setup = joint_faces.shared_setup(first)
+            scores = [joint_faces.face_scores(p, setup, cfg) for p in jp.faces]
             combined = sun_search.combine(scores, np.asarray(jp.weights))
             found = sun_search.pick(combined, first.grid)
             theta0 = first.starts_from(found, setup[1], rho_start)
@@ -514,121 +480,3 @@ def _stacked_least_squares(jp: JointProblem, albedo: np.ndarray, ground_albedo: 
         rhs = rhs + c * (A.T @ (p.target.numpy() / p.apparent(albedo)[None, :]))
     ridge = 1e-8 * np.trace(lhs) / lhs.shape[1]
     return np.linalg.solve(lhs + ridge * np.eye(lhs.shape[1]), rhs).reshape(-1)
-
-
-def _agreements(problems: dict[int, FaceProblem], fit: _Fit, cfg: EstimatorConfig) -> dict[int, float]:
-    """Each face's agreement with the fit's light (module docstring): {face index: ratio} for the
-    faces the fit used (by their index in ``fit``) and every other problem given. Compact-sun
-    models only; empty for others."""
-    light = _search_light(fit)
-    if light is None:
-        return {}
-    texel, m_unit, w_sky, w_sun = light
-    return {i: _ratio(p, texel, m_unit, w_sky, w_sun, cfg) for i, p in problems.items()}
-
-
-def _sun_seen(problems: dict[int, FaceProblem], fit: _Fit, cfg: EstimatorConfig) -> dict[int, tuple[float, float]]:
-    """Each face's (seen, share) of the fit's sun (``sun_search.sun_seen``), for every problem
-    given; empty for models without a compact sun."""
-    light = _search_light(fit)
-    if light is None:
-        return {}
-    texel, m_unit, w_sky, w_sun = light
-    return {i: sun_search.sun_seen(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
-                                   p.grid, texel, m_unit, _e_blocks(p), cfg.ground_albedo_init, w_sky, w_sun)
-            for i, p in problems.items()}
-
-
-def _sees_no_sun(seen: dict[int, tuple[float, float]], active: list[int], groups) -> int | None:
-    """The face that shows least of the group's sun (``SUN_SEEN_MIN``, where the sun makes
-    ``SUN_SHARE_MIN`` of its shading) while a face of its photo shows ``SUN_SEEN_PEER`` of it;
-    None if none. A light whose sun no face shows is the light's fault, not a face's."""
-    told = [i for i in active if i in seen and seen[i][1] >= SUN_SHARE_MIN]
-    blind = [i for i in told if seen[i][0] < SUN_SEEN_MIN
-             and any(seen[j][0] >= SUN_SEEN_PEER for j in told if j != i and groups[j] == groups[i])]
-    return min(blind, key=lambda i: seen[i][0]) if blind else None
-
-
-def _search_light(fit: _Fit):
-    """The fit's light in the search's terms: (sun texel, unit sky block means (nb, 3), w_sky,
-    w_sun); None for models without a compact sun."""
-    first = fit.problems[0]
-    if first.hybrid is None:
-        return None
-    model = first.model
-    with torch.no_grad():
-        sky, w_sky, _ = model.light_parts(torch.as_tensor(fit.params[None]))
-        m_unit, _ = first.hybrid.sky_summary(sky, first.e_sky)
-    w_sun = fit.params[list(model.sun_layout.sun_rgb)]
-    texel = _nearest_texel(first.grid, model.sun_direction(fit.params))
-    return texel, m_unit[0].numpy(), w_sky[0].numpy(), w_sun
-
-
-def _setup(p: FaceProblem):
-    """The sun search's candidates (``FaceProblem.search_setup``), made once for the faces of one
-    grid, model and config and kept on the first problem that asks."""
-    if getattr(p, "_setup", None) is None:
-        p._setup = p.search_setup()
-    return p._setup
-
-
-def _scores(p: FaceProblem, setup, cfg: EstimatorConfig):
-    """The face's search scores (``FaceProblem.search_scores``), computed once per problem."""
-    if getattr(p, "_scores", None) is None:
-        p._scores = p.search_scores(setup, cfg.ground_albedo_init)
-    return p._scores
-
-
-def _consensus(problems: dict[int, FaceProblem], active: list[int], cfg: EstimatorConfig,
-               limit: float) -> dict[int, float]:
-    """Each face's ratio under the light most faces agree with, before any joint fit.
-
-    Every face's own best light of the search (sun texel, sky shape and psi, or the sun-less sky)
-    is tried on every face (``sun_search.relative_residual`` over the face's own best residual):
-    the light under which most faces stay within ``limit`` wins (ties: the lower mean ratio). A
-    face in another's shadow cannot pull the joint fit's sun away before it is found."""
-    setup = _setup(problems[active[0]])
-    texels, _, sky_blocks, _ = setup
-    lights = {}
-    for i in active:
-        sc = _scores(problems[i], setup, cfg)
-        flat = int(np.argmin(sc.total))
-        k, shape = divmod(flat, sc.total.shape[1])
-        if float(sc.sky_total.min()) < float(sc.total.flat[flat]):
-            k, shape = divmod(int(np.argmin(sc.sky_total)), sc.total.shape[1])
-            lights[i] = (int(texels[k]), sky_blocks[k, shape], sc.sky_psi[k, shape], np.zeros(3))
-        else:
-            lights[i] = (int(texels[k]), sky_blocks[k, shape], sc.psi_sky[k, shape], sc.psi_sun[k, shape])
-    ratio = {}
-    for i in active:
-        texel, blocks, w_sky, w_sun = lights[i]
-        ratio[i] = {j: _ratio(problems[j], texel, blocks, w_sky, w_sun, cfg) for j in active}
-    best = min(active, key=lambda i: (-sum(r <= limit for r in ratio[i].values()), float(np.mean(list(ratio[i].values())))))
-    return ratio[best]
-
-
-def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: EstimatorConfig) -> float:
-    """The face's relative residual under one light over its own best's (``_own_best``)."""
-    rel = sun_search.relative_residual(p.hybrid.t_blk.numpy(), p.g.numpy(), p.transport.columns, p.target.numpy(),
-                                       p.grid, texel, np.asarray(sky_block_means), _e_blocks(p), cfg.ground_albedo_init,
-                                       np.asarray(w_sky), np.asarray(w_sun))
-    return rel / max(_own_best(p, cfg), 1e-12)
-
-
-def _nearest_texel(grid: LatLongGrid, direction: np.ndarray) -> int:
-    """The sky texel whose direction is nearest to ``direction`` (kept above the horizon row)."""
-    d = np.asarray(direction, np.float64)
-    lu = grid.sky_rows * grid.width
-    return int(np.argmax(grid.directions_flat[:lu] @ d))
-
-
-def _e_blocks(p: FaceProblem) -> np.ndarray:
-    nb = p.hybrid.t_blk.shape[1]
-    return np.bincount(p.hybrid.block_of, weights=p.e_sky.numpy(), minlength=nb)
-
-
-def _own_best(p: FaceProblem, cfg: EstimatorConfig) -> float:
-    """The face's residual under the best light of its own sun search (relative, as
-    ``sun_search.relative_residual``), computed once per problem."""
-    s = _scores(p, _setup(p), cfg)
-    return min(float(s.total.min()), float(s.sky_total.min())) / max(s.yy, 1e-300)
