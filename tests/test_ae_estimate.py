@@ -95,6 +95,42 @@ def test_estimate_recovers_the_sun_azimuth_of_a_corpus_sky(model, face_under_cor
     assert res.timings["starts"] >= 1 and res.iterations > 0
 
 
+def test_an_ae_estimate_carries_sun_cones_holding_the_true_sun(model, face_under_corpus_sky):
+    face, info = face_under_corpus_sky
+    obs = FaceObservation(face.normals, face.observed_rgb, face.mask, face.visibility_bits, GRID)
+    res = estimate(obs, model, EstimatorConfig(threads=2))
+    u = res.sun_uncertainty
+    assert u is not None and 0 < u.cone68_deg < u.cone90_deg <= 180.0
+    error = math.degrees(math.acos(min(1.0, float(np.asarray(res.sun_direction) @ np.asarray(info["sun_direction"])))))
+    assert error <= u.cone90_deg
+    assert u.num_pixels == int(np.count_nonzero(face.mask)) and not u.overcast_fit
+    assert u.predicted_mae_s >= 0 and res.timings["uncertainty_s"] < 0.05  # the search's scores: no refit
+
+
+def test_a_search_candidate_s_sun_turns_with_its_azimuth_roll(model):
+    """Candidate (k, j) is code k's cached sky rolled by j half-blocks: its sun is the rolled sky's
+    brightest texel, and turning the candidate turns its sun about +Y by the search's azimuth step."""
+    import f2l.estimate.latent as latent
+    from f2l.lighting.grid import angles_from_direction
+
+    n = 256
+    obs = FaceObservation(np.tile([[0.0, 0.0, 1.0]], (n, 1)), np.full((n, 3), 0.2), np.ones(n, bool),
+                          np.zeros((n, GRID.size // 8), np.uint8), GRID)
+    prob = latent.LatentSkyProblem(obs, model, EstimatorConfig(threads=1))
+    codes, skies = prob.candidate_skies()
+    K, A = len(codes), 2 * prob.nbc
+    suns = latent.candidate_sun_directions(prob, (K, A)).reshape(K, A, 3)
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    for k, j in ((0, 0), (1, 5), (K - 1, A - 1)):
+        sky = prob.rotated_candidates([k], [j])[0].numpy()  # (3, rows, W)
+        r, c = np.unravel_index(np.argmax(np.tensordot(lum, sky, 1)), sky.shape[1:])
+        assert np.allclose(suns[k, j], GRID.directions_flat[r * GRID.width + c])
+        el0, az0 = angles_from_direction(suns[k, 0])
+        el, az = angles_from_direction(suns[k, j])
+        assert el == pytest.approx(el0)
+        assert _azimuth_error_deg(float(az), float(az0) + prob.search_azimuth(j)) < 1e-6
+
+
 def test_fit_probe_gives_the_feed_forward_and_the_optimised_fit(model):
     probe, info = _clear_sky(2000)
     fit = fit_probe(probe, model, max_iter=25)

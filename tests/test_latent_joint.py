@@ -47,7 +47,7 @@ def test_groups_left_with_one_face_are_the_single_estimate_bit_for_bit(faces, ae
     assert len(kept) == 1 and _same(joint.result, estimate(pair[kept[0]], ae, CFG))
 
 
-def test_three_faces_under_one_sky_recover_its_sun(three):
+def test_three_faces_under_one_sky_recover_its_sun(faces, three):
     assert all(s.used for s in three.faces)
     assert all(s.agreement is not None and s.agreement < DISAGREE_RATIO for s in three.faces)
     assert _angle_deg(three.result.sun_direction, SUN) < 10.0
@@ -56,6 +56,11 @@ def test_three_faces_under_one_sky_recover_its_sun(three):
     assert all(np.all((s.albedo > 0) & (s.albedo <= 1)) and 0 < s.ground_albedo < 1 and s.data > 0
                for s in three.faces)
     assert three.result.timings["faces"] == 3.0
+    # the group's sun cones, from the search summed over the faces and every face's pixels
+    u = three.result.sun_uncertainty
+    assert u is not None and 0 < u.cone68_deg < u.cone90_deg <= 180.0
+    assert _angle_deg(three.result.sun_direction, SUN) <= u.cone90_deg
+    assert u.num_pixels == sum(int(np.count_nonzero(_obs(f, str(i)).mask)) for i, f in enumerate(faces[:3]))
 
 
 def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(faces, ae, three):

@@ -220,5 +220,5 @@ class EstimateResult:
     start_losses: list = field(default_factory=list)
     num_pixels_used: int = 0
     specular_ks: float | None = None  # the sun highlight's k_s (EstimatorConfig.sun_specular), else None
-    sun_uncertainty: object | None = None  # f2l.estimate.uncertainty.SunUncertainty (compact-sun models), else None
+    sun_uncertainty: object | None = None  # f2l.estimate.uncertainty.SunUncertainty (sun and latent-sky models), else None
     sun_spread_kappa: float | None = None  # the probe's spread sun's kappa (EstimatorConfig.sun_spread), None: sharp

@@ -261,7 +261,8 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
 
     t_search = time.perf_counter()  # one (K A 3 x 256) . (256 x N) product: all threads
     rho_skin = np.asarray(cfg.fixed_albedo if cfg.fixed_albedo is not None else skin_albedo_mean(), dtype=np.float64)
-    candidates = prob.search(cfg.ground_albedo_init)
+    coarse = prob.coarse_scores(cfg.ground_albedo_init)
+    candidates = prob.refine_search(coarse, cfg.ground_albedo_init)
     starts = pick_starts(candidates, max(1, cfg.sun_starts))
     search_s = time.perf_counter() - t_search
     torch.set_num_threads(1)  # small batched tensors: one intra-op thread (f2l.estimate.estimator)
@@ -306,15 +307,55 @@ def estimate_latent_sky(obs: FaceObservation, model, cfg: EstimatorConfig | None
     probe = _probe_with_ground(model, params, float(rho_g[0]))
     if not np.isfinite(probe).all():
         raise EstimationError("estimated probe is not finite")
+    sun_direction = model.sun_direction(params)
+    t_uncertainty = time.perf_counter()
+    normals = np.asarray(obs.normals)[np.asarray(obs.mask, bool)]
+    uncertainty = latent_sun_uncertainty(prob, coarse, sun_direction, normals)
+    uncertainty_s = time.perf_counter() - t_uncertainty
     runtime = time.perf_counter() - t_start
     return EstimateResult(
         params=params, param_names=list(model.param_names), albedo=rho[0].double().numpy(),
         ground_albedo=float(rho_g[0]), loss=float(total[0]), iterations=iterations, converged=converged,
-        runtime_s=runtime, probe=probe, sun_direction=model.sun_direction(params),
-        timings={"precompute_s": precompute_s, "search_s": search_s, "fit_s": fit_s, "total_s": runtime,
-                 "starts": float(len(starts))},
-        start_losses=[c["score"] for c in starts], num_pixels_used=int(prob.idx.size),
+        runtime_s=runtime, probe=probe, sun_direction=sun_direction,
+        timings={"precompute_s": precompute_s, "search_s": search_s, "fit_s": fit_s, "uncertainty_s": uncertainty_s,
+                 "total_s": runtime, "starts": float(len(starts))},
+        start_losses=[c["score"] for c in starts], num_pixels_used=int(prob.idx.size), sun_uncertainty=uncertainty,
     )
+
+
+def candidate_sun_directions(prob: LatentSkyProblem, shape: tuple[int, int]) -> np.ndarray:
+    """(K A, 3) the sun of each (code, azimuth) candidate of the coarse search (``shape`` = (K, A),
+    row-major as :meth:`LatentSkyProblem.coarse_scores`): the brightest sky texel (Rec.709
+    luminance) of the code's cached sky, its column turned with the candidate's azimuth roll."""
+    key = ("suns", prob.model.cache_key, prob.grid.height, prob.grid.width)
+    if key not in _SEARCH_CACHE:
+        _, sky = prob.candidate_skies()
+        lum = torch.einsum("c,kcrw->krw", torch.tensor([0.2126, 0.7152, 0.0722], dtype=sky.dtype), sky)
+        flat = lum.reshape(lum.shape[0], -1).argmax(1).numpy()
+        _SEARCH_CACHE[key] = (flat // prob.width, flat % prob.width)
+    rows, cols = _SEARCH_CACHE[key]
+    K, A = shape
+    half = BLOCK[1] // 2
+    col = (cols[:, None] + half * np.arange(A)[None, :]) % prob.width  # (K, A): torch.roll by j half-blocks
+    texel = (np.repeat(rows[:, None], A, 1) * prob.grid.width + col).reshape(-1)
+    return np.asarray(prob.grid.directions_flat, np.float64)[texel]
+
+
+def latent_sun_uncertainty(prob: LatentSkyProblem, coarse: torch.Tensor, sun_direction, normals: np.ndarray):
+    """The sun's cones of a latent-sky estimate (f2l.estimate.uncertainty): the posterior over the
+    coarse search's candidates, each scored by its squared relative L1 residual (the search's
+    score, squared to stand where a squared residual stands), calibrated by the latent-sky
+    constants (``LATENT_CONE_COEFFICIENTS``; no overcast judgement: that feature is 0). None
+    without a sun direction or a finite score."""
+    from f2l.estimate import uncertainty as unc
+
+    score = coarse.double().numpy()
+    if sun_direction is None or not np.isfinite(score).any():
+        return None
+    dirs = candidate_sun_directions(prob, score.shape)
+    return unc.sun_uncertainty(np.asarray(sun_direction, np.float64), dirs, (score * score).reshape(-1, 1), 1.0,
+                               normals, False, cone_coefficients=unc.LATENT_CONE_COEFFICIENTS,
+                               cone_quantiles=unc.LATENT_CONE_QUANTILES, mae_coefficients=unc.LATENT_MAE_COEFFICIENTS)
 
 
 def fit_starts(objective, variables, cfg: EstimatorConfig, fixed_albedo: bool) -> tuple[tuple, int, bool, torch.Tensor]:

@@ -47,7 +47,7 @@ from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import estimate
 from f2l.estimate.joint_common import DARK_RATIO, DISAGREE_RATIO, FaceShare, JointResult, darkness, face_noise, face_weights
 from f2l.estimate.latent import (SEARCH_REFINE, LatentSkyProblem, _probe_with_ground, fit_starts, latent_params,
-                                 pick_starts)
+                                 latent_sun_uncertainty, pick_starts)
 from f2l.estimate.observation import EstimationError, FaceObservation
 from f2l.estimate.skin import albedo_prior_nll, skin_albedo_mean
 
@@ -134,6 +134,12 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
             s.weight, s.albedo, s.ground_albedo = float(fit["weights"][j]), fit["albedo"][j], float(fit["ground"][j])
             s.gain, s.data = float(fit["gain"][j]), float(fit["data"][j])
         result.timings["precompute_s"] = precompute_s
+        # the sun's cones, as a single face's, from the search's scores summed over the faces as the
+        # joint starts weigh them, and every face's pixels
+        combined = sum(float(w) * coarse[i] for w, i in zip(fit["weights"], active))
+        normals = np.concatenate([np.asarray(observations[i].normals)[np.asarray(observations[i].mask, bool)]
+                                  for i in active])
+        result.sun_uncertainty = latent_sun_uncertainty(problems[active[0]], combined, result.sun_direction, normals)
     result.runtime_s = time.perf_counter() - t_start
     result.timings.update(total_s=result.runtime_s, faces=float(len(active)))
     return JointResult(result, shares)

@@ -34,6 +34,14 @@ Predicted relit error. ``predicted_mae_s`` is a linear regression of the relit-s
 (f2l.metrics.render_metrics) on [1, r_90 / 90°, lit, the search's relative residual R_min / |y|²],
 fitted by least squares on the same tuning faces (``MAE_COEFFICIENTS``).
 
+Latent-sky models (f2l.estimate.latent.latent_sun_uncertainty). The mass points are the
+coarse search's candidates, every search code at every azimuth step, each at its decoded sky's
+brightest texel and scored by its relative L1 residual squared (standing where a squared residual
+stands); there is no elevation profile and no overcast judgement (that feature is 0). The same
+procedure calibrates them on the same tuning faces estimated with the built-in latent sky
+(``LATENT_CONE_COEFFICIENTS``, ``LATENT_CONE_QUANTILES``, ``LATENT_MAE_COEFFICIENTS``). The probe of
+a latent sky is not spread.
+
 Conventions: unit directions, +Y up (the grid's), radii in degrees, at most 180°.
 """
 
@@ -45,7 +53,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SunUncertainty", "TEMPERATURE", "PROFILE_SHARE", "LATTICE_SIGMA_DEG", "CONE_COEFFICIENTS", "CONE_QUANTILES",
-           "MAE_COEFFICIENTS", "direction_posterior", "cone_radii_deg", "lit_fraction", "cone_features", "mae_features",
+           "MAE_COEFFICIENTS", "LATENT_CONE_COEFFICIENTS", "LATENT_CONE_QUANTILES", "LATENT_MAE_COEFFICIENTS",
+           "direction_posterior", "cone_radii_deg", "lit_fraction", "cone_features", "mae_features",
            "calibrated_cones_deg", "predicted_mae_s", "sun_uncertainty"]
 
 TEMPERATURE = 30.0  # tau of the search posterior (chosen by cross-validation on the tuning part)
@@ -61,6 +70,12 @@ LEVELS = (0.68, 0.90)
 CONE_COEFFICIENTS = (1.701, 0.2419, -0.6725, 0.6001)  # beta over [1, ln p_90, lit, overcast]
 CONE_QUANTILES = (1.482, 2.958)  # k_68, k_90
 MAE_COEFFICIENTS = (0.04877, 0.3348, -0.03457, 0.2701)  # over [1, r_90 / 90°, lit, relative residual]
+# latent-sky models (f2l.estimate.latent: the coarse search's candidates, no overcast feature), fitted the
+# same way on the built-in latent sky's estimates of the same tuning faces, tau = 30;
+# docs/experiments/uncertainty.md "Latent skies"
+LATENT_CONE_COEFFICIENTS = (1.146, 0.5568, -0.7375, 0.0)
+LATENT_CONE_QUANTILES = (1.495, 2.777)
+LATENT_MAE_COEFFICIENTS = (0.02328, 0.3150, -0.02478, 2.752)
 
 
 @dataclass
