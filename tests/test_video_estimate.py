@@ -159,6 +159,91 @@ def test_the_light_between_two_estimates_moves_the_sun_along_the_great_circle():
     assert interpolate_params(model, a, b, 9.0)[lay.azimuth] == pytest.approx(math.pi / 2)
 
 
+def _estimate(segment, el_deg, az_deg, r68=None, samples=("s",)):
+    from f2l.estimate.record import _get_model
+
+    model = _get_model("sunsky", GRID)
+    p = np.asarray(model.initial_points(), np.float64)[0].copy()
+    p[model.sun_angles.elevation], p[model.sun_angles.azimuth] = math.radians(el_deg), math.radians(az_deg)
+    return SampleEstimate(0, 0.0, segment, p, direction_from_angles(math.radians(el_deg), math.radians(az_deg)), 0.2,
+                          [], [], {}, False, 0.0, cones=None if r68 is None else (r68, 2 * r68, 0.1),
+                          samples=list(samples))
+
+
+def test_consecutive_segments_whose_suns_agree_within_their_90_percent_cones_form_runs():
+    from f2l.video.estimate import agreeing_runs
+
+    # 20 deg apart: inside 90% cones of 24 and 30 deg (r_90 = 2 r_68 here), not inside 16 and 30
+    ests = [_estimate(0, 30.0, -10.0, 12.0), _estimate(1, 30.0, 13.5, 15.0), _estimate(2, 60.0, 120.0, 8.0)]
+    assert agreeing_runs(ests, 3) == [[0, 1], [2]]
+    ests[0].cones = (8.0, 16.0, 0.1)
+    assert agreeing_runs(ests, 3) == [[0], [1], [2]]
+    # the last window of a segment meets the first of the next; no window, no cones: a run of its own
+    ests = [_estimate(0, 30.0, 80.0, 5.0), _estimate(0, 30.0, 0.0, 20.0), _estimate(1, 30.0, 10.0, 20.0),
+            _estimate(3, 30.0, 10.0, 20.0), _estimate(4, 30.0, 10.0)]
+    assert agreeing_runs(ests, 5) == [[0, 1], [2], [3], [4]]
+    assert agreeing_runs([], 2) == [[0], [1]]
+
+
+def test_the_shared_sun_weighs_each_window_by_its_cone():
+    from f2l.video.estimate import shared_sun_direction
+
+    a, b = _estimate(0, 30.0, -10.0, r68=5.0), _estimate(1, 30.0, 10.0, r68=10.0)
+    d = shared_sun_direction([a, b])
+    # weights 1/25 and 1/100: the mean of the two unit vectors with those weights
+    expected = a.sun_direction / 25.0 + b.sun_direction / 100.0
+    assert np.allclose(d, expected / np.linalg.norm(expected), atol=1e-12)
+    assert _angle_deg(d, a.sun_direction) < _angle_deg(d, b.sun_direction)
+    # equal cones: halfway on the great circle (a little above 30 deg); a window without cones counts nothing
+    mid = shared_sun_direction([_estimate(0, 30.0, -10.0, 7.0), _estimate(1, 30.0, 10.0, 7.0), _estimate(1, 80.0, 0.0)])
+    halfway = a.sun_direction + b.sun_direction
+    assert np.allclose(mid, halfway / np.linalg.norm(halfway), atol=1e-12)
+    assert shared_sun_direction([]) is None and shared_sun_direction([_estimate(0, 30.0, 0.0)]) is None
+
+
+def test_agreeing_windows_are_refitted_with_the_run_s_sun_and_others_keep_theirs():
+    from types import SimpleNamespace
+
+    import torch
+
+    from f2l.estimate.record import _get_model
+    from f2l.video.estimate import share_agreeing_suns
+
+    model = _get_model("sunsky", GRID)
+    lay = model.sun_angles
+    calls = []
+
+    def refit(observations, model_, start, cfg, *, extra_prior, pixel_rc, albedo_group, problems):
+        calls.append(start.copy())
+        # the prior holds the sun: zero at the start's sun, growing away from it
+        moved = start.copy()
+        moved[lay.azimuth] += math.radians(3.0)
+        assert float(extra_prior(torch.as_tensor(start[None]))) == pytest.approx(0.0, abs=1e-12)
+        assert float(extra_prior(torch.as_tensor(moved[None]))) > 0.0
+        sun = direction_from_angles(float(start[lay.elevation]), float(start[lay.azimuth]))
+        return SimpleNamespace(params=start, sun_direction=sun, ground_albedo=0.3), [SimpleNamespace(data=0.5)]
+
+    sample = SimpleNamespace(observation=None, pixel_rc=None, person=0, frame=3, problem=object())
+    ests = [_estimate(0, 30.0, -5.0, 6.0, [sample]), _estimate(1, 30.0, 5.0, 6.0, [sample]),
+            _estimate(2, 50.0, 90.0, 6.0, [sample])]  # a cut to another sun: 0 and 1 agree, 2 does not
+    kept = ests[2].sun_direction.copy()
+    share_agreeing_suns(ests, 3, model, None, VideoOptions(), refit, (ValueError,))
+    assert len(calls) == 2
+    shared = ests[0].sun_direction + ests[1].sun_direction
+    for e in ests[:2]:
+        assert np.allclose(e.sun_direction, shared / np.linalg.norm(shared), atol=1e-9)
+        assert e.ground_albedo == 0.3 and e.residual == {(3, 0): 0.5} and e.cones == (6.0, 12.0, 0.1)
+    assert np.array_equal(ests[2].sun_direction, kept)
+
+    def fails(*args, **kwargs):
+        raise ValueError("no")
+
+    before = [e.sun_direction.copy() for e in ests]
+    ests[1].sun_direction = direction_from_angles(math.radians(30.0), math.radians(8.0))
+    share_agreeing_suns(ests, 3, model, None, VideoOptions(), fails, (ValueError,))  # a failed refit keeps its light
+    assert np.array_equal(ests[0].sun_direction, before[0])
+
+
 # -- end to end -------------------------------------------------------------------------------
 SUNS = [(35.0, 60.0), (20.0, -80.0)]
 

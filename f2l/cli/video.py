@@ -25,6 +25,7 @@ def video_cmd(
     focal_35mm_mm: float = typer.Option(50.0, "--focal-35mm", min=5.0, help="The camera's 35 mm-equivalent focal length (clips rarely record it)."),
     min_face_px: float = typer.Option(40.0, "--min-face-px", min=8.0, help="The smallest face to follow, in px."),
     resolution: int = typer.Option(VIDEO_RESOLUTION, "--resolution", min=32, max=256, help="Working px of a sampled face (a photo's: 104)."),
+    share_suns: bool = typer.Option(True, "--share-suns/--no-share-suns", help="Consecutive segments whose suns agree within their 90% cones (a cloud, not a cut to another sun) share one sun direction."),
     json_out: JsonOut = False,
 ) -> None:
     """Estimate a clip's light per frame: faces tracked, one light per window of frames, restarted at cuts and sudden changes."""
@@ -39,7 +40,7 @@ def video_cmd(
     except ModelNotFoundError as exc:
         fail(str(exc))
     options = VideoOptions(model=model, sample_every=sample_every, window_s=window_s, focal_35mm_mm=focal_35mm_mm,
-                           min_face_px=min_face_px, resolution=resolution)
+                           min_face_px=min_face_px, resolution=resolution, share_agreeing_suns=share_suns)
     try:
         with progress_bars(not json_out) as progress:
             summary = estimate_clip(clip, out, options, every=every, preview=preview, max_frames=max_frames,

@@ -29,7 +29,16 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    (faster, but it drifted on long clips). One person's samples share one skin albedo
    (``tie_albedo``): how the same skin brightens and darkens as the head turns is what the frames
    tell about the light.
-4. **Every frame** gets the light of its segment, interpolated in time between the estimates
+4. **One sun where the segments agree.** A cloud over the sun, walking into shade or an exposure
+   jump starts a segment but moves no sun in the camera's frame; a cut may (or may not: the
+   colours of a frame cannot tell a cut from a cloud that darkens the whole scene). So two
+   consecutive segments whose suns agree within their 90% cones (the last window of the one, the
+   first of the next: the angle between their suns at most the smaller r_90) are taken to share
+   one sun (``share_agreeing_suns``): the windows' suns of such a run of segments, each weighted by
+   1 / r_68², give one direction, and every window of the run is refitted from its light with the
+   sun held there (a prior of ``share_sigma_deg``; the sky's and the sun's strengths stay each
+   window's own). Windows without cones (a warm refit, a model without them) share nothing.
+5. **Every frame** gets the light of its segment, interpolated in time between the estimates
    around it (each placed at the mean time of its window; the sun's direction interpolated on
    the sphere), so a static light does not jitter and a frame is never lit by another segment.
 
@@ -52,7 +61,7 @@ import numpy as np
 from f2l.lighting.grid import LatLongGrid
 
 __all__ = ["ChangeDetector", "Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light",
-           "face_luminance", "interpolate_params"]
+           "face_luminance", "interpolate_params", "agreeing_runs", "shared_sun_direction", "share_agreeing_suns"]
 
 HISTOGRAM_BINS = 16
 HISTOGRAM_SIDE = 96  # frames are reduced to this long side for the histogram
@@ -83,6 +92,9 @@ class VideoOptions:
     light_rate_deg_s: float = 2.0  # how fast the sun may move in the camera's frame
     temporal_sigma_deg: float = 2.0  # sigma_0 of the temporal prior
     temporal_weight: float = 1e-2
+    # consecutive segments whose suns agree within their 90% cones share one sun (module docstring, step 4)
+    share_agreeing_suns: bool = True
+    share_sigma_deg: float = 0.25
     change_ratio: float = 1.8
     cut_distance: float = 0.5
     min_face_px: float = 40.0
@@ -133,6 +145,7 @@ class SampleEstimate:
     # the sun's cones of a full joint estimate (f2l.estimate.uncertainty): r_68, r_90 (deg) and the
     # predicted relit-scene MAE (s); None for a warm refit (no search)
     cones: tuple[float, float, float] | None = None
+    samples: list = field(default_factory=list)  # the window's samples it used (for a refit)
 
 
 @dataclass
@@ -253,14 +266,19 @@ class ChangeDetector:
 
 def _temporal_prior(model, last: SampleEstimate, dt_s: float, options: VideoOptions):
     """The prior on the sun's move since ``last`` (module docstring, step 3), or None."""
-    import torch
-
     if last.sun_direction is None or not hasattr(model, "sun_angles"):
         return None
+    sigma_deg = math.hypot(options.temporal_sigma_deg, options.light_rate_deg_s * max(dt_s, 0.0))
+    return _sun_prior(model, last.sun_direction, sigma_deg, options.temporal_weight)
+
+
+def _sun_prior(model, direction, sigma_deg: float, weight: float):
+    """params (B, P) -> (B,): weight · ½ |s − d|² / σ² for the model's sun s and unit ``direction`` d."""
+    import torch
+
     lay = model.sun_angles
-    s0 = torch.as_tensor(np.asarray(last.sun_direction, np.float64))
-    sigma = math.radians(math.hypot(options.temporal_sigma_deg, options.light_rate_deg_s * max(dt_s, 0.0)))
-    weight = options.temporal_weight
+    s0 = torch.as_tensor(np.asarray(direction, np.float64))
+    sigma = math.radians(sigma_deg)
 
     def prior(params):
         el, az = params[:, lay.elevation], params[:, lay.azimuth]
@@ -268,6 +286,82 @@ def _temporal_prior(model, last: SampleEstimate, dt_s: float, options: VideoOpti
         return weight * 0.5 * ((d - s0) ** 2).sum(1) / sigma**2
 
     return prior
+
+
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return math.degrees(math.acos(float(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+
+def agreeing_runs(estimates: list[SampleEstimate], n_segments: int) -> list[list[int]]:
+    """The segments ``0 .. n_segments - 1`` grouped into runs of consecutive segments whose suns
+    agree (module docstring, step 4): segment k joins k − 1's run when the angle between the sun of
+    k − 1's last window and that of k's first window is at most the smaller of their 90% cones.
+    A segment without a window, a sun or cones starts a run of its own."""
+    first: dict[int, SampleEstimate] = {}
+    last: dict[int, SampleEstimate] = {}
+    for e in estimates:
+        first.setdefault(e.segment, e)
+        last[e.segment] = e
+    runs: list[list[int]] = []
+    for k in range(n_segments):
+        a, b = last.get(k - 1), first.get(k)
+        if (runs and a is not None and b is not None and a.sun_direction is not None and b.sun_direction is not None
+                and a.cones is not None and b.cones is not None
+                and _angle_deg(a.sun_direction, b.sun_direction) <= min(a.cones[1], b.cones[1])):
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return runs
+
+
+def shared_sun_direction(estimates: list[SampleEstimate]) -> np.ndarray | None:
+    """The unit mean of the estimates' sun directions, each weighted by 1 / r_68² of its cones
+    (radii floored at 1°; estimates without a sun or cones left out); None without any."""
+    total = np.zeros(3)
+    for e in estimates:
+        if e.sun_direction is not None and e.cones is not None:
+            total += np.asarray(e.sun_direction, np.float64) / max(float(e.cones[0]), 1.0) ** 2
+    norm = float(np.linalg.norm(total))
+    return None if norm < 1e-12 else total / norm
+
+
+def share_agreeing_suns(estimates: list[SampleEstimate], n_segments: int, model, cfg, options: VideoOptions,
+                        refit_joint, errors) -> None:
+    """Module docstring, step 4: every window of a run of agreeing segments refitted with its sun
+    held at the run's shared direction (in place; its cones stay). A window whose refit fails, or a
+    latent-sky model's (no explicit sun to hold), keeps its light."""
+    from f2l.lighting.grid import angles_from_direction
+
+    if not hasattr(model, "sun_angles"):
+        return
+    lay = model.sun_angles
+    for run in agreeing_runs(estimates, n_segments):
+        if len(run) < 2:
+            continue
+        members = [e for e in estimates if e.segment in run and e.sun_direction is not None and e.cones is not None]
+        shared = shared_sun_direction(members)
+        if shared is None:
+            continue
+        el, az = angles_from_direction(shared)
+        prior = _sun_prior(model, shared, options.share_sigma_deg, options.temporal_weight)
+        for e in members:
+            if not e.samples:
+                continue
+            start = np.asarray(e.params, np.float64).copy()
+            start[lay.elevation], start[lay.azimuth] = float(el), float(az)
+            persons = [s.person for s in e.samples] if options.tie_albedo else None
+            try:
+                result, shares = refit_joint([s.observation for s in e.samples], model, start, cfg, extra_prior=prior,
+                                             pixel_rc=[s.pixel_rc for s in e.samples], albedo_group=persons,
+                                             problems=[_problem(s, model, cfg) for s in e.samples])
+            except errors:
+                continue
+            e.params = np.asarray(result.params, np.float64)
+            e.sun_direction = None if result.sun_direction is None else np.asarray(result.sun_direction)
+            e.ground_albedo = result.ground_albedo
+            e.residual = {(s.frame, s.person): share.data for s, share in zip(e.samples, shares)
+                          if share.data is not None}
 
 
 def interpolate_params(model, a: SampleEstimate, b: SampleEstimate, time_s: float) -> np.ndarray:
@@ -438,6 +532,11 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
         t_track = time.perf_counter()
     if last_frame is not None:
         flush(last_frame)
+    if options.share_agreeing_suns:
+        t0 = time.perf_counter()
+        share_agreeing_suns(estimates, len(segments), model, warm_cfg, options, refit_joint,
+                            (JointUnsupported, EstimationError))
+        spent["estimate_s"] += time.perf_counter() - t0
     _fill_rows(rows, estimates, model)
     total = time.perf_counter() - t_start
     timings = {**{k: round(v, 4) for k, v in spent.items()}, "total_s": round(total, 4), "frames": n_frames,
@@ -478,7 +577,7 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
                           sun_direction=None if result.sun_direction is None else np.asarray(result.sun_direction),
                           ground_albedo=result.ground_albedo, window=[s.frame for s in used],
                           persons=[s.person for s in used], residual=residual, cold=last is None,
-                          runtime_s=time.perf_counter() - t0, cones=cones)
+                          runtime_s=time.perf_counter() - t0, cones=cones, samples=used)
 
 
 def _most_redundant(window) -> int:
