@@ -170,44 +170,40 @@ def _estimate(segment, el_deg, az_deg, r68=None, samples=("s",)):
                           samples=list(samples))
 
 
-def test_consecutive_segments_whose_suns_agree_within_their_90_percent_cones_form_runs():
-    from f2l.video.estimate import agreeing_runs
+def test_two_windows_suns_agree_within_the_smaller_90_percent_cone():
+    from f2l.video.estimate import suns_agree
 
-    # 20 deg apart: inside 90% cones of 24 and 30 deg (r_90 = 2 r_68 here), not inside 16 and 30
-    ests = [_estimate(0, 30.0, -10.0, 12.0), _estimate(1, 30.0, 13.5, 15.0), _estimate(2, 60.0, 120.0, 8.0)]
-    assert agreeing_runs(ests, 3) == [[0, 1], [2]]
-    ests[0].cones = (8.0, 16.0, 0.1)
-    assert agreeing_runs(ests, 3) == [[0], [1], [2]]
-    # the last window of a segment meets the first of the next; no window, no cones: a run of its own
-    ests = [_estimate(0, 30.0, 80.0, 5.0), _estimate(0, 30.0, 0.0, 20.0), _estimate(1, 30.0, 10.0, 20.0),
-            _estimate(3, 30.0, 10.0, 20.0), _estimate(4, 30.0, 10.0)]
-    assert agreeing_runs(ests, 5) == [[0, 1], [2], [3], [4]]
-    assert agreeing_runs([], 2) == [[0], [1]]
+    a, b = _estimate(0, 30.0, -10.0, 12.0), _estimate(1, 30.0, 13.5, 15.0)  # 20 deg apart
+    assert suns_agree((a.sun_direction, a.cones), (b.sun_direction, b.cones))  # r_90 24 and 30
+    assert not suns_agree((a.sun_direction, (8.0, 16.0, 0.1)), (b.sun_direction, b.cones))
+    assert not suns_agree((a.sun_direction, None), (b.sun_direction, b.cones))
+    assert not suns_agree((None, a.cones), (b.sun_direction, b.cones))
 
 
 def test_the_shared_sun_weighs_each_window_by_its_cone():
     from f2l.video.estimate import shared_sun_direction
 
     a, b = _estimate(0, 30.0, -10.0, r68=5.0), _estimate(1, 30.0, 10.0, r68=10.0)
-    d = shared_sun_direction([a, b])
+    d = shared_sun_direction([(a.sun_direction, a.cones), (b.sun_direction, b.cones)])
     # weights 1/25 and 1/100: the mean of the two unit vectors with those weights
     expected = a.sun_direction / 25.0 + b.sun_direction / 100.0
     assert np.allclose(d, expected / np.linalg.norm(expected), atol=1e-12)
     assert _angle_deg(d, a.sun_direction) < _angle_deg(d, b.sun_direction)
-    # equal cones: halfway on the great circle (a little above 30 deg); a window without cones counts nothing
-    mid = shared_sun_direction([_estimate(0, 30.0, -10.0, 7.0), _estimate(1, 30.0, 10.0, 7.0), _estimate(1, 80.0, 0.0)])
+    # equal cones: halfway on the great circle (a little above 30 deg); a point without cones counts nothing
+    mid = shared_sun_direction([(a.sun_direction, (7.0, 14.0)), (b.sun_direction, (7.0, 14.0)),
+                                (direction_from_angles(1.4, 0.0), None)])
     halfway = a.sun_direction + b.sun_direction
     assert np.allclose(mid, halfway / np.linalg.norm(halfway), atol=1e-12)
-    assert shared_sun_direction([]) is None and shared_sun_direction([_estimate(0, 30.0, 0.0)]) is None
+    assert shared_sun_direction([]) is None and shared_sun_direction([(a.sun_direction, None)]) is None
 
 
-def test_agreeing_windows_are_refitted_with_the_run_s_sun_and_others_keep_theirs():
+def test_windows_at_an_agreeing_change_share_the_run_s_sun_and_only_the_newest_keeps_its_samples():
     from types import SimpleNamespace
 
     import torch
 
     from f2l.estimate.record import _get_model
-    from f2l.video.estimate import share_agreeing_suns
+    from f2l.video.estimate import SunSharing
 
     model = _get_model("sunsky", GRID)
     lay = model.sun_angles
@@ -223,25 +219,33 @@ def test_agreeing_windows_are_refitted_with_the_run_s_sun_and_others_keep_theirs
         sun = direction_from_angles(float(start[lay.elevation]), float(start[lay.azimuth]))
         return SimpleNamespace(params=start, sun_direction=sun, ground_albedo=0.3), [SimpleNamespace(data=0.5)]
 
-    sample = SimpleNamespace(observation=None, pixel_rc=None, person=0, frame=3, problem=object())
-    ests = [_estimate(0, 30.0, -5.0, 6.0, [sample]), _estimate(1, 30.0, 5.0, 6.0, [sample]),
-            _estimate(2, 50.0, 90.0, 6.0, [sample])]  # a cut to another sun: 0 and 1 agree, 2 does not
-    kept = ests[2].sun_direction.copy()
-    share_agreeing_suns(ests, 3, model, None, VideoOptions(), refit, (ValueError,))
-    assert len(calls) == 2
-    shared = ests[0].sun_direction + ests[1].sun_direction
-    for e in ests[:2]:
+    def sample():
+        return SimpleNamespace(observation=None, pixel_rc=None, person=0, frame=3, problem=object())
+
+    sharing = SunSharing(model, None, VideoOptions(), refit, (ValueError,))
+    # segment 0: two windows; segment 1 (a cloud: its sun agrees); segment 2 (a cut to another sun)
+    ests = [_estimate(0, 30.0, -20.0, 6.0, [sample()]), _estimate(0, 30.0, -5.0, 6.0, [sample()]),
+            _estimate(1, 30.0, 5.0, 6.0, [sample()]), _estimate(2, 50.0, 90.0, 6.0, [sample()])]
+    original = [e.sun_direction.copy() for e in ests]
+    for k, e in enumerate(ests):
+        sharing.add(e, ests[k - 1] if k else None)
+        assert all(not x.samples for x in ests[:k]) and e.samples  # only the newest keeps its samples
+    assert len(calls) == 2 and sharing.refits == 2  # the windows on either side of the cloud, not of the cut
+    shared = original[1] + original[2]
+    for e in ests[1:3]:
         assert np.allclose(e.sun_direction, shared / np.linalg.norm(shared), atol=1e-9)
         assert e.ground_albedo == 0.3 and e.residual == {(3, 0): 0.5} and e.cones == (6.0, 12.0, 0.1)
-    assert np.array_equal(ests[2].sun_direction, kept)
+    assert np.array_equal(ests[0].sun_direction, original[0]) and np.array_equal(ests[3].sun_direction, original[3])
 
     def fails(*args, **kwargs):
         raise ValueError("no")
 
-    before = [e.sun_direction.copy() for e in ests]
-    ests[1].sun_direction = direction_from_angles(math.radians(30.0), math.radians(8.0))
-    share_agreeing_suns(ests, 3, model, None, VideoOptions(), fails, (ValueError,))  # a failed refit keeps its light
-    assert np.array_equal(ests[0].sun_direction, before[0])
+    a, b = _estimate(0, 30.0, -5.0, 6.0, [sample()]), _estimate(1, 30.0, 5.0, 6.0, [sample()])
+    sharing = SunSharing(model, None, VideoOptions(), fails, (ValueError,))
+    sharing.add(a, None)
+    sharing.add(b, a)
+    assert sharing.refits == 0 and np.array_equal(b.sun_direction, direction_from_angles(math.radians(30.0),
+                                                                                         math.radians(5.0)))
 
 
 # -- end to end -------------------------------------------------------------------------------

@@ -34,10 +34,11 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    colours of a frame cannot tell a cut from a cloud that darkens the whole scene). So two
    consecutive segments whose suns agree within their 90% cones (the last window of the one, the
    first of the next: the angle between their suns at most the smaller r_90) are taken to share
-   one sun (``share_agreeing_suns``): the windows' suns of such a run of segments, each weighted by
-   1 / r_68², give one direction, and every window of the run is refitted from its light with the
-   sun held there (a prior of ``share_sigma_deg``; the sky's and the sun's strengths stay each
-   window's own). Windows without cones (a warm refit, a model without them) share nothing.
+   one sun (``share_agreeing_suns``, :class:`SunSharing`): those two windows are refitted from
+   their lights with the sun held (a prior of ``share_sigma_deg``; the sky's and the sun's
+   strengths stay each window's own) at the mean of the suns of the run's windows at its changes so
+   far, each weighted by 1 / r_68². Windows without cones (a warm refit, a model without them)
+   share nothing; the windows inside a long segment keep their own suns.
 5. **Every frame** gets the light of its segment, interpolated in time between the estimates
    around it (each placed at the mean time of its window; the sun's direction interpolated on
    the sphere), so a static light does not jitter and a frame is never lit by another segment.
@@ -61,7 +62,7 @@ import numpy as np
 from f2l.lighting.grid import LatLongGrid
 
 __all__ = ["ChangeDetector", "Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light",
-           "face_luminance", "interpolate_params", "agreeing_runs", "shared_sun_direction", "share_agreeing_suns"]
+           "face_luminance", "interpolate_params", "suns_agree", "shared_sun_direction", "SunSharing"]
 
 HISTOGRAM_BINS = 16
 HISTOGRAM_SIDE = 96  # frames are reduced to this long side for the histogram
@@ -293,75 +294,87 @@ def _angle_deg(a, b) -> float:
     return math.degrees(math.acos(float(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
 
 
-def agreeing_runs(estimates: list[SampleEstimate], n_segments: int) -> list[list[int]]:
-    """The segments ``0 .. n_segments - 1`` grouped into runs of consecutive segments whose suns
-    agree (module docstring, step 4): segment k joins k − 1's run when the angle between the sun of
-    k − 1's last window and that of k's first window is at most the smaller of their 90% cones.
-    A segment without a window, a sun or cones starts a run of its own."""
-    first: dict[int, SampleEstimate] = {}
-    last: dict[int, SampleEstimate] = {}
-    for e in estimates:
-        first.setdefault(e.segment, e)
-        last[e.segment] = e
-    runs: list[list[int]] = []
-    for k in range(n_segments):
-        a, b = last.get(k - 1), first.get(k)
-        if (runs and a is not None and b is not None and a.sun_direction is not None and b.sun_direction is not None
-                and a.cones is not None and b.cones is not None
-                and _angle_deg(a.sun_direction, b.sun_direction) <= min(a.cones[1], b.cones[1])):
-            runs[-1].append(k)
-        else:
-            runs.append([k])
-    return runs
+def suns_agree(a: tuple, b: tuple) -> bool:
+    """Whether two windows' suns agree (module docstring, step 4): ``a``, ``b`` = (unit sun, cones
+    (r_68, r_90, ...)); the angle between the suns at most the smaller r_90. False without a sun or
+    cones."""
+    if a[0] is None or b[0] is None or a[1] is None or b[1] is None:
+        return False
+    return _angle_deg(a[0], b[0]) <= min(float(a[1][1]), float(b[1][1]))
 
 
-def shared_sun_direction(estimates: list[SampleEstimate]) -> np.ndarray | None:
-    """The unit mean of the estimates' sun directions, each weighted by 1 / r_68² of its cones
-    (radii floored at 1°; estimates without a sun or cones left out); None without any."""
+def shared_sun_direction(points: list[tuple]) -> np.ndarray | None:
+    """The unit mean of the (sun, cones) ``points``' suns, each weighted by 1 / r_68² (radii floored
+    at 1°; points without a sun or cones left out); None without any."""
     total = np.zeros(3)
-    for e in estimates:
-        if e.sun_direction is not None and e.cones is not None:
-            total += np.asarray(e.sun_direction, np.float64) / max(float(e.cones[0]), 1.0) ** 2
+    for sun, cones in points:
+        if sun is not None and cones is not None:
+            total += np.asarray(sun, np.float64) / max(float(cones[0]), 1.0) ** 2
     norm = float(np.linalg.norm(total))
     return None if norm < 1e-12 else total / norm
 
 
-def share_agreeing_suns(estimates: list[SampleEstimate], n_segments: int, model, cfg, options: VideoOptions,
-                        refit_joint, errors) -> None:
-    """Module docstring, step 4: every window of a run of agreeing segments refitted with its sun
-    held at the run's shared direction (in place; its cones stay). A window whose refit fails, or a
-    latent-sky model's (no explicit sun to hold), keeps its light."""
-    from f2l.lighting.grid import angles_from_direction
+class SunSharing:
+    """Module docstring, step 4, as the windows come: :meth:`add` each new window's estimate. When a
+    segment's first window agrees with the last window of the segment before, the run of agreeing
+    segments goes on: both windows are refitted from their lights with the sun held at the
+    cone-weighted mean of the run's windows at its changes so far (as each was estimated). Only the
+    newest window keeps its samples (the one a refit may still need), so memory does not grow with
+    the clip. A refit that fails, or a model without explicit sun angles, leaves the light as it is."""
 
-    if not hasattr(model, "sun_angles"):
-        return
-    lay = model.sun_angles
-    for run in agreeing_runs(estimates, n_segments):
-        if len(run) < 2:
-            continue
-        members = [e for e in estimates if e.segment in run and e.sun_direction is not None and e.cones is not None]
-        shared = shared_sun_direction(members)
-        if shared is None:
-            continue
+    def __init__(self, model, cfg, options: VideoOptions, refit_joint, errors) -> None:
+        self.model, self.cfg, self.options, self.refit_joint, self.errors = model, cfg, options, refit_joint, errors
+        self.run: list[tuple] = []  # (sun, cones) of the run's windows at its changes, as estimated
+        self.last: tuple | None = None  # (sun, cones) of the newest window as estimated
+        self.refits = 0
+
+    def add(self, estimate: SampleEstimate, previous: SampleEstimate | None) -> None:
+        point = (None if estimate.sun_direction is None else np.asarray(estimate.sun_direction, np.float64),
+                 estimate.cones)
+        before, self.last = self.last, point
+        if previous is not None:
+            previous_samples, previous.samples = previous.samples, []  # its segment is over, or it is no boundary
+        if previous is None or previous.segment == estimate.segment:
+            if previous is None:
+                self.run = []
+            return
+        if previous.segment + 1 != estimate.segment or before is None or not suns_agree(before, point):
+            self.run = []
+            return
+        if not self.run or self.run[-1] is not before:
+            self.run.append(before)
+        self.run.append(point)
+        shared = shared_sun_direction(self.run)
+        if shared is None or not hasattr(self.model, "sun_angles"):
+            return
+        previous.samples = previous_samples
+        for e in (previous, estimate):
+            self._refit(e, shared)
+        previous.samples = []
+
+    def _refit(self, e: SampleEstimate, shared: np.ndarray) -> None:
+        from f2l.lighting.grid import angles_from_direction
+
+        if not e.samples:
+            return
+        lay = self.model.sun_angles
         el, az = angles_from_direction(shared)
-        prior = _sun_prior(model, shared, options.share_sigma_deg, options.temporal_weight)
-        for e in members:
-            if not e.samples:
-                continue
-            start = np.asarray(e.params, np.float64).copy()
-            start[lay.elevation], start[lay.azimuth] = float(el), float(az)
-            persons = [s.person for s in e.samples] if options.tie_albedo else None
-            try:
-                result, shares = refit_joint([s.observation for s in e.samples], model, start, cfg, extra_prior=prior,
-                                             pixel_rc=[s.pixel_rc for s in e.samples], albedo_group=persons,
-                                             problems=[_problem(s, model, cfg) for s in e.samples])
-            except errors:
-                continue
-            e.params = np.asarray(result.params, np.float64)
-            e.sun_direction = None if result.sun_direction is None else np.asarray(result.sun_direction)
-            e.ground_albedo = result.ground_albedo
-            e.residual = {(s.frame, s.person): share.data for s, share in zip(e.samples, shares)
-                          if share.data is not None}
+        start = np.asarray(e.params, np.float64).copy()
+        start[lay.elevation], start[lay.azimuth] = float(el), float(az)
+        prior = _sun_prior(self.model, shared, self.options.share_sigma_deg, self.options.temporal_weight)
+        persons = [s.person for s in e.samples] if self.options.tie_albedo else None
+        try:
+            result, shares = self.refit_joint([s.observation for s in e.samples], self.model, start, self.cfg,
+                                              extra_prior=prior, pixel_rc=[s.pixel_rc for s in e.samples],
+                                              albedo_group=persons,
+                                              problems=[_problem(s, self.model, self.cfg) for s in e.samples])
+        except self.errors:
+            return
+        self.refits += 1
+        e.params = np.asarray(result.params, np.float64)
+        e.sun_direction = None if result.sun_direction is None else np.asarray(result.sun_direction)
+        e.ground_albedo = result.ground_albedo
+        e.residual = {(s.frame, s.person): share.data for s, share in zip(e.samples, shares) if share.data is not None}
 
 
 def interpolate_params(model, a: SampleEstimate, b: SampleEstimate, time_s: float) -> np.ndarray:
@@ -446,6 +459,9 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
     t_track = time.perf_counter()
     last_frame = None
 
+    sharing = (SunSharing(model, warm_cfg, options, refit_joint, (JointUnsupported, EstimationError))
+               if options.share_agreeing_suns else None)
+
     def run_window(tf) -> None:
         t0 = time.perf_counter()
         est = _estimate_window(list(window), model, cfg, warm_cfg, estimates, segment, tf, options,
@@ -453,6 +469,12 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
         spent["estimate_s"] += time.perf_counter() - t0
         if est is not None:
             estimates.append(est)
+            if sharing is not None:
+                t0 = time.perf_counter()
+                sharing.add(est, estimates[-2] if len(estimates) > 1 else None)
+                spent["estimate_s"] += time.perf_counter() - t0
+            else:
+                est.samples = []
             return
         for sample in window:
             if sample.row.get("status") == "ok":
@@ -532,11 +554,8 @@ def estimate_clip_light(frames, options: VideoOptions = VideoOptions(), *, fps: 
         t_track = time.perf_counter()
     if last_frame is not None:
         flush(last_frame)
-    if options.share_agreeing_suns:
-        t0 = time.perf_counter()
-        share_agreeing_suns(estimates, len(segments), model, warm_cfg, options, refit_joint,
-                            (JointUnsupported, EstimationError))
-        spent["estimate_s"] += time.perf_counter() - t0
+    if estimates:
+        estimates[-1].samples = []
     _fill_rows(rows, estimates, model)
     total = time.perf_counter() - t_start
     timings = {**{k: round(v, 4) for k, v in spent.items()}, "total_s": round(total, 4), "frames": n_frames,
