@@ -8,8 +8,8 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    in both frames, moves by more than ``cut_distance`` in L1 between two frames), or a sudden
    change of the light on a face (its mean linear luminance over patches at its 468 landmarks
    jumps by more than ``change_ratio`` against the median of its last three frames: a cloud over
-   the sun, walking into shade). Each change starts a new **segment**; nothing is shared across
-   segments.
+   the sun, walking into shade). Each change starts a new **segment**; nothing but the sun's
+   direction is shared across segments, and that only where their suns agree (step 4).
 2. **Sample** a face every ``sample_every`` frames (and at once in a new segment; every
    ``cold_sample_every`` frames, if more often, until the segment's first light), fitted as a
    photo's face is (:func:`f2l.face.fit.fit_face`, at ``resolution`` px) but with its transport
