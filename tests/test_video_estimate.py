@@ -19,7 +19,8 @@ from f2l.face.geometry import NUM_MESH_LANDMARKS
 from f2l.lighting.grid import LatLongGrid, direction_from_angles
 from f2l.synth.render import pose_matrix
 from f2l.transport.visibility import compute_visibility, front_mask, unpack_bits
-from f2l.video.estimate import ChangeDetector, SampleEstimate, VideoOptions, interpolate_params
+from f2l.video.changes import ChangeDetector
+from f2l.video.estimate import SampleEstimate, VideoOptions, interpolate_params
 from f2l.video.head import head_transport
 from f2l.video.track import TrackedFace
 
@@ -171,7 +172,7 @@ def _estimate(segment, el_deg, az_deg, r68=None, samples=("s",)):
 
 
 def test_two_windows_suns_agree_within_the_smaller_90_percent_cone():
-    from f2l.video.estimate import suns_agree
+    from f2l.video.sun_share import suns_agree
 
     a, b = _estimate(0, 30.0, -10.0, 12.0), _estimate(1, 30.0, 13.5, 15.0)  # 20 deg apart
     assert suns_agree((a.sun_direction, a.cones), (b.sun_direction, b.cones))  # r_90 24 and 30
@@ -181,7 +182,7 @@ def test_two_windows_suns_agree_within_the_smaller_90_percent_cone():
 
 
 def test_the_shared_sun_weighs_each_window_by_its_cone():
-    from f2l.video.estimate import shared_sun_direction
+    from f2l.video.sun_share import shared_sun_direction
 
     a, b = _estimate(0, 30.0, -10.0, r68=5.0), _estimate(1, 30.0, 10.0, r68=10.0)
     d = shared_sun_direction([(a.sun_direction, a.cones), (b.sun_direction, b.cones)])
@@ -203,7 +204,7 @@ def test_windows_at_an_agreeing_change_share_the_run_s_sun_and_only_the_newest_k
     import torch
 
     from f2l.estimate.record import _get_model
-    from f2l.video.estimate import SunSharing
+    from f2l.video.sun_share import SunSharing
 
     model = _get_model("sunsky", GRID)
     lay = model.sun_angles

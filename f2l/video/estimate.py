@@ -3,7 +3,7 @@
 A face in a clip turns and nods under the same sky, so its frames are several views of one light
 (:mod:`f2l.estimate.joint`). Per clip (:func:`estimate_clip`):
 
-1. **Track** each face (:mod:`f2l.video.track`) and watch for **changes**: a cut or a change of
+1. **Track** each face (:mod:`f2l.video.track`) and watch for **changes** (:mod:`f2l.video.changes`): a cut or a change of
    the whole scene's light (the frame's colour histogram outside the faces' boxes, the same region
    in both frames, moves by more than ``cut_distance`` in L1 between two frames), or a sudden
    change of the light on a face (its mean linear luminance over patches at its 468 landmarks
@@ -29,7 +29,7 @@ A face in a clip turns and nods under the same sky, so its frames are several vi
    (faster, but it drifted on long clips). One person's samples share one skin albedo
    (``tie_albedo``): how the same skin brightens and darkens as the head turns is what the frames
    tell about the light.
-4. **One sun where the segments agree.** A cloud over the sun, walking into shade or an exposure
+4. **One sun where the segments agree** (:mod:`f2l.video.sun_share`). A cloud over the sun, walking into shade or an exposure
    jump starts a segment but moves no sun in the camera's frame; a cut may (or may not: the
    colours of a frame cannot tell a cut from a cloud that darkens the whole scene). So two
    consecutive segments whose suns agree within their 90% cones (the last window of the one, the
@@ -60,13 +60,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from f2l.lighting.grid import LatLongGrid
+from f2l.video.changes import ChangeDetector
+from f2l.video.sun_share import SunSharing, sample_problem, sun_prior
 
-__all__ = ["ChangeDetector", "Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light",
-           "face_luminance", "interpolate_params", "suns_agree", "shared_sun_direction", "SunSharing"]
+__all__ = ["Sample", "SampleEstimate", "VideoOptions", "ClipLight", "estimate_clip_light", "interpolate_params",
+           "default_grid"]
 
-HISTOGRAM_BINS = 16
-HISTOGRAM_SIDE = 96  # frames are reduced to this long side for the histogram
-BOX_MARGIN = 1.6  # a face's box widened this much is left out of the frame's histogram (hair, hands)
 
 
 @dataclass(frozen=True)
@@ -163,218 +162,13 @@ class ClipLight:
     param_names: list[str] = field(default_factory=list)
 
 
-def face_luminance(image: np.ndarray, landmarks: np.ndarray, radius: int = 2) -> float:
-    """Mean linear luminance of an sRGB uint8 frame over (2r+1)² patches at the face's 468 mesh
-    landmarks: a whole-face brightness that a shadow edge crossing a few landmarks barely moves."""
-    from f2l.io.photo.core import srgb_to_linear
-
-    h, w = image.shape[:2]
-    xy = np.rint(np.asarray(landmarks, np.float64)[:468, :2]).astype(np.int64)
-    off = np.arange(-radius, radius + 1)
-    cols = np.clip(xy[:, 0, None, None] + off[None, None, :], 0, w - 1)
-    rows = np.clip(xy[:, 1, None, None] + off[None, :, None], 0, h - 1)
-    codes = image[rows, cols].reshape(-1, 3)
-    lut = _linear_lut(srgb_to_linear)
-    return float((lut[codes] @ np.array([0.2126, 0.7152, 0.0722])).mean())
-
-
-_LUT = None
-
-
-def _linear_lut(srgb_to_linear) -> np.ndarray:
-    global _LUT
-    if _LUT is None:
-        _LUT = np.asarray(srgb_to_linear(np.arange(256) / 255.0), np.float64)
-    return _LUT
-
-
-def _small(image: np.ndarray) -> tuple[np.ndarray, int]:
-    """The frame reduced (by striding) to about ``HISTOGRAM_SIDE`` px on its long side, and the factor."""
-    k = max(1, int(max(image.shape[:2]) // HISTOGRAM_SIDE))
-    return np.ascontiguousarray(image[::k, ::k]), k
-
-
-def face_free_mask(shape: tuple[int, int], k: int, boxes) -> np.ndarray:
-    """uint8 mask of a reduced frame (``_small``), 0 inside the faces' ``boxes`` (x0, y0, x1, y1
-    px) widened by ``BOX_MARGIN``, 255 elsewhere (all 255 if the faces cover everything)."""
-    mask = np.full(shape, 255, np.uint8)
-    for x0, y0, x1, y1 in boxes:
-        cx, cy, half_w, half_h = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) * BOX_MARGIN / 2, (y1 - y0) * BOX_MARGIN / 2
-        r0, r1 = int(max(0, (cy - half_h) / k)), int(min(shape[0], math.ceil((cy + half_h) / k)))
-        c0, c1 = int(max(0, (cx - half_w) / k)), int(min(shape[1], math.ceil((cx + half_w) / k)))
-        mask[r0:r1, c0:c1] = 0
-    if not mask.any():
-        mask[:] = 255
-    return mask
-
-
-def frame_histogram(small: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The reduced frame's colour histogram where ``mask`` is set: 3 × ``HISTOGRAM_BINS``, each
-    channel's summing to 1."""
-    import cv2
-
-    hist = [cv2.calcHist([np.ascontiguousarray(small[..., c])], [0], mask, [HISTOGRAM_BINS], [0, 256]).ravel()
-            for c in range(3)]
-    return np.concatenate(hist) / max(float((mask > 0).sum()), 1.0)
-
-
-class ChangeDetector:
-    """Cuts and sudden light changes, frame by frame (module docstring, step 1)."""
-
-    def __init__(self, cut_distance: float, change_ratio: float) -> None:
-        self.cut_distance = float(cut_distance)
-        self.change_ratio = float(change_ratio)
-        self._last: tuple[np.ndarray, list] | None = None  # the last reduced frame and its face boxes
-        self._skin: dict[int, deque] = {}
-
-    def reset(self) -> None:
-        self._skin.clear()
-
-    def update(self, image: np.ndarray, faces) -> str | None:
-        """Why a new segment starts at this frame (``"cut: ..."``, ``"light: ..."``), or None.
-        The colours are compared outside both frames' face boxes."""
-        small, k = _small(image)
-        boxes = [f.box for f in faces if f.box is not None]
-        why = None
-        if self._last is not None and self._last[0].shape == small.shape:
-            # both frames outside both frames' faces: a face that moves, turns or is covered is no cut
-            mask = face_free_mask(small.shape[:2], k, boxes + self._last[1])
-            distance = float(np.abs(frame_histogram(small, mask) - frame_histogram(self._last[0], mask)).sum() / 3.0)
-            if distance > self.cut_distance:
-                why = f"cut or light: the colours outside the faces moved by {distance:.2f} (limit {self.cut_distance:.2f})"
-        self._last = (small, boxes)
-        if why is not None:
-            self.reset()
-        for face in faces:
-            if face.landmarks is None or face.status != "ok":
-                continue
-            lum = face_luminance(image, face.landmarks)
-            past = self._skin.setdefault(face.person, deque(maxlen=3))
-            if why is None and len(past) == past.maxlen:
-                ref = float(np.median(past))
-                ratio = lum / max(ref, 1e-6)
-                if ratio > self.change_ratio or ratio < 1.0 / self.change_ratio:
-                    why = (f"light: person {face.person}'s skin changed {ratio:.2f}x in a frame "
-                           f"(limit {self.change_ratio:.2f}x)")
-            past.append(lum)
-        if why is not None and why.startswith("light"):
-            keep = {f.person: self._skin[f.person][-1] for f in faces if f.person in self._skin}
-            self.reset()
-            for person, lum in keep.items():
-                self._skin.setdefault(person, deque(maxlen=3)).append(lum)
-        return why
-
 
 def _temporal_prior(model, last: SampleEstimate, dt_s: float, options: VideoOptions):
     """The prior on the sun's move since ``last`` (module docstring, step 3), or None."""
     if last.sun_direction is None or not hasattr(model, "sun_angles"):
         return None
     sigma_deg = math.hypot(options.temporal_sigma_deg, options.light_rate_deg_s * max(dt_s, 0.0))
-    return _sun_prior(model, last.sun_direction, sigma_deg, options.temporal_weight)
-
-
-def _sun_prior(model, direction, sigma_deg: float, weight: float):
-    """params (B, P) -> (B,): weight · ½ |s − d|² / σ² for the model's sun s and unit ``direction`` d."""
-    import torch
-
-    lay = model.sun_angles
-    s0 = torch.as_tensor(np.asarray(direction, np.float64))
-    sigma = math.radians(sigma_deg)
-
-    def prior(params):
-        el, az = params[:, lay.elevation], params[:, lay.azimuth]
-        d = torch.stack([torch.cos(el) * torch.sin(az), torch.sin(el), -torch.cos(el) * torch.cos(az)], 1)
-        return weight * 0.5 * ((d - s0) ** 2).sum(1) / sigma**2
-
-    return prior
-
-
-def _angle_deg(a, b) -> float:
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return math.degrees(math.acos(float(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
-
-
-def suns_agree(a: tuple, b: tuple) -> bool:
-    """Whether two windows' suns agree (module docstring, step 4): ``a``, ``b`` = (unit sun, cones
-    (r_68, r_90, ...)); the angle between the suns at most the smaller r_90. False without a sun or
-    cones."""
-    if a[0] is None or b[0] is None or a[1] is None or b[1] is None:
-        return False
-    return _angle_deg(a[0], b[0]) <= min(float(a[1][1]), float(b[1][1]))
-
-
-def shared_sun_direction(points: list[tuple]) -> np.ndarray | None:
-    """The unit mean of the (sun, cones) ``points``' suns, each weighted by 1 / r_68² (radii floored
-    at 1°; points without a sun or cones left out); None without any."""
-    total = np.zeros(3)
-    for sun, cones in points:
-        if sun is not None and cones is not None:
-            total += np.asarray(sun, np.float64) / max(float(cones[0]), 1.0) ** 2
-    norm = float(np.linalg.norm(total))
-    return None if norm < 1e-12 else total / norm
-
-
-class SunSharing:
-    """Module docstring, step 4, as the windows come: :meth:`add` each new window's estimate. When a
-    segment's first window agrees with the last window of the segment before, the run of agreeing
-    segments goes on: both windows are refitted from their lights with the sun held at the
-    cone-weighted mean of the run's windows at its changes so far (as each was estimated). Only the
-    newest window keeps its samples (the one a refit may still need), so memory does not grow with
-    the clip. A refit that fails, or a model without explicit sun angles, leaves the light as it is."""
-
-    def __init__(self, model, cfg, options: VideoOptions, refit_joint, errors) -> None:
-        self.model, self.cfg, self.options, self.refit_joint, self.errors = model, cfg, options, refit_joint, errors
-        self.run: list[tuple] = []  # (sun, cones) of the run's windows at its changes, as estimated
-        self.last: tuple | None = None  # (sun, cones) of the newest window as estimated
-        self.refits = 0
-
-    def add(self, estimate: SampleEstimate, previous: SampleEstimate | None) -> None:
-        point = (None if estimate.sun_direction is None else np.asarray(estimate.sun_direction, np.float64),
-                 estimate.cones)
-        before, self.last = self.last, point
-        if previous is not None:
-            previous_samples, previous.samples = previous.samples, []  # its segment is over, or it is no boundary
-        if previous is None or previous.segment == estimate.segment:
-            if previous is None:
-                self.run = []
-            return
-        if previous.segment + 1 != estimate.segment or before is None or not suns_agree(before, point):
-            self.run = []
-            return
-        if not self.run or self.run[-1] is not before:
-            self.run.append(before)
-        self.run.append(point)
-        shared = shared_sun_direction(self.run)
-        if shared is None or not hasattr(self.model, "sun_angles"):
-            return
-        previous.samples = previous_samples
-        for e in (previous, estimate):
-            self._refit(e, shared)
-        previous.samples = []
-
-    def _refit(self, e: SampleEstimate, shared: np.ndarray) -> None:
-        from f2l.lighting.grid import angles_from_direction
-
-        if not e.samples:
-            return
-        lay = self.model.sun_angles
-        el, az = angles_from_direction(shared)
-        start = np.asarray(e.params, np.float64).copy()
-        start[lay.elevation], start[lay.azimuth] = float(el), float(az)
-        prior = _sun_prior(self.model, shared, self.options.share_sigma_deg, self.options.temporal_weight)
-        persons = [s.person for s in e.samples] if self.options.tie_albedo else None
-        try:
-            result, shares = self.refit_joint([s.observation for s in e.samples], self.model, start, self.cfg,
-                                              extra_prior=prior, pixel_rc=[s.pixel_rc for s in e.samples],
-                                              albedo_group=persons,
-                                              problems=[_problem(s, self.model, self.cfg) for s in e.samples])
-        except self.errors:
-            return
-        self.refits += 1
-        e.params = np.asarray(result.params, np.float64)
-        e.sun_direction = None if result.sun_direction is None else np.asarray(result.sun_direction)
-        e.ground_albedo = result.ground_albedo
-        e.residual = {(s.frame, s.person): share.data for s, share in zip(e.samples, shares) if share.data is not None}
+    return sun_prior(model, last.sun_direction, sigma_deg, options.temporal_weight)
 
 
 def interpolate_params(model, a: SampleEstimate, b: SampleEstimate, time_s: float) -> np.ndarray:
@@ -584,7 +378,7 @@ def _estimate_window(window: list[Sample], model, cfg, warm_cfg, estimates: list
         else:
             prior = _temporal_prior(model, last, tf.time_s - last.time_s, options)
             result, shares = refit_joint(obs, model, last.params, warm_cfg, extra_prior=prior, pixel_rc=rc,
-                                         problems=[_problem(s, model, warm_cfg) for s in window], albedo_group=persons)
+                                         problems=[sample_problem(s, model, warm_cfg) for s in window], albedo_group=persons)
     except errors:
         return None
     used = [s for s, share in zip(window, shares) if share.used]
@@ -607,17 +401,6 @@ def _most_redundant(window) -> int:
     d = np.linalg.norm(poses[:, None] - poses[None], axis=2) + np.diag(np.full(len(window), np.inf))
     nearest = d.min(1)[:-1]  # the newest stays
     return int(np.argmin(nearest + 1e-9 * np.arange(len(nearest))))  # ties: the oldest
-
-
-def _problem(sample: Sample, model, cfg):
-    """The sample's FaceProblem under ``cfg``, built once (a sample sits in several windows)."""
-    import torch
-
-    from f2l.estimate.problem import FaceProblem
-
-    if sample.problem is None:
-        sample.problem = FaceProblem(sample.observation, model, cfg, torch.float64)
-    return sample.problem
 
 
 def _fill_rows(rows: list[dict], estimates: list[SampleEstimate], model) -> None:
