@@ -123,6 +123,24 @@ def test_a_face_in_the_shade_is_left_out_and_the_rest_is_the_group_without_it(fa
     assert all(s.used for s in kept.faces)  # the check can be turned off
 
 
+def test_the_consensus_needs_two_faces_that_agree_on_a_light(faces, sunsky):
+    """Before the fit, the light two or more faces agree with decides who joins: the three sunlit
+    faces agree on each other's light and the shaded face does not. Where no light suits a second
+    face (a limit so tight that each face's own light suits it alone), there is no consensus and
+    no face leaves before the fit."""
+    import torch
+
+    from f2l.estimate import joint_faces
+    from f2l.estimate.problem import FaceProblem
+
+    problems = {i: FaceProblem(_obs(f, str(i)), sunsky, CFG, torch.float64) for i, f in enumerate(faces)}
+    active = list(problems)
+    support = joint_faces.consensus(problems, active, CFG, DISAGREE_RATIO)
+    assert support is not None
+    assert all(support[i] <= DISAGREE_RATIO for i in (0, 1, 2)) and support[3] > DISAGREE_RATIO
+    assert joint_faces.consensus(problems, active, CFG, 1.0 + 1e-9) is None
+
+
 def test_a_face_that_shows_none_of_the_groups_sun_is_left_out_as_in_shade(faces, sunsky, monkeypatch):
     """The rule's wiring: with the residual tests out of the way (a very high limit) and face 2
     read as showing none of the sun (its measure is checked above on a truly shaded face), face

@@ -82,6 +82,41 @@ def test_nll_single_gaussian_by_hand():
     assert prior.nll(np.array([[3.0, -1.0]]))[0] == pytest.approx(math.log(2 * math.pi) + 2.5, rel=1e-14)
 
 
+def test_marginal_integrates_the_dropped_feature_out():
+    """The marginal of a mixture over "b": log ∫ p(a, b) db, integrated numerically on a fine grid of
+    b, equals the marginal's own log-likelihood; the features can be re-ordered, and one unknown
+    name is refused."""
+    prior = GmmPrior(WEIGHTS, MEANS, COVS, ["a", "b"])
+    marginal = prior.marginal(["a"])
+    assert marginal.features == ["a"] and marginal.means.shape == (2, 1) and marginal.covariances.shape == (2, 1, 1)
+    a = np.array([-1.0, 0.5, 2.0, 4.5])
+    b = np.linspace(-15.0, 18.0, 20001)
+    for ai, nll in zip(a, marginal.nll(a[:, None])):
+        density = np.exp(-prior.nll(np.column_stack([np.full_like(b, ai), b])))
+        assert nll == pytest.approx(-math.log(np.trapezoid(density, b)), rel=1e-9)
+    swapped = prior.marginal(["b", "a"])
+    x = np.array([[0.3, -0.7], [2.0, 5.0]])
+    np.testing.assert_allclose(swapped.nll(x[:, ::-1]), prior.nll(x), rtol=1e-12)
+    with pytest.raises(ValueError):
+        prior.marginal(["c"])
+
+
+def test_sunsky_prior_prefers_no_sun_elevation():
+    """The sunsky prior term is the GMM marginalised over the sun's elevation: moving only the
+    elevation of any parameter vector leaves it unchanged, while the other features still count."""
+    model = SunSky(GRID)
+    assert model.prior is not None and "sun_elevation_rad" not in model.scored_prior.features
+    starts = torch.as_tensor(model.initial_points())
+    nll = model.prior_nll(starts)
+    for elevation in (0.0, 0.3, 0.8, 1.2, math.pi / 2):
+        moved = starts.clone()
+        moved[:, 6] = elevation
+        torch.testing.assert_close(model.prior_nll(moved), nll, rtol=0, atol=0)
+    turbid = starts.clone()
+    turbid[:, 8] = 30.0  # far outside the corpus' turbidities
+    assert torch.all(model.prior_nll(turbid) > nll + 1.0)
+
+
 def test_fit_gmm_drops_non_finite_rows_and_caps_components():
     x = _mixture_samples(n=400, seed=2)
     a = fit_gmm(x, ["a", "b"], n_components=2, seed=3)
@@ -363,10 +398,11 @@ def test_cli_build_prior_and_use_the_prior(cli_run, monkeypatch):
     nll = model.prior_nll(params)
     assert nll.shape == (len(starts) + 1,) and torch.all(torch.isfinite(nll))
     # the model widens the file's components by a floor (sunsky_prior.FEATURE_MIN_STD)
-    widened = prior.widened(sunsky_prior.FEATURE_MIN_STD)
+    # and scores it marginalised over the sun's elevation (sunsky_prior.SCORED_FEATURES)
+    widened = prior.widened(sunsky_prior.FEATURE_MIN_STD).marginal(list(sunsky_prior.SCORED_FEATURES))
     np.testing.assert_allclose(model.prior.covariances,
                                prior.covariances + np.diag(np.square(sunsky_prior.FEATURE_MIN_STD))[None])
-    expected = widened.nll(model.prior_features(starts[:1]))[0]
+    expected = widened.nll(model.prior_features(starts[:1])[:, 1:])[0]
     assert float(nll.detach()[0]) == pytest.approx(float(expected), rel=1e-9)
     nll.sum().backward()
     assert torch.all(torch.isfinite(params.grad))

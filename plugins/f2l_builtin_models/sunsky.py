@@ -72,6 +72,7 @@ TURBIDITY_RANGE = (1.7, 35.0)
 KAPPA_RANGE = (8.0, 8192.0)
 GAMMA_EPS = 1e-12  # gamma = acos(clamp(cos, -1 + eps, 1 - eps)): >= 1.4e-6 rad, finite gradient
 DEFAULT_PRIOR_PATH = Path(__file__).parent / "data" / "sunsky_prior.json"
+_SCORED_INDEX = [sunsky_prior.FEATURE_NAMES.index(name) for name in sunsky_prior.SCORED_FEATURES]
 MAX_PRIOR_COMPONENTS = 4  # x 4 azimuths = 16 starts
 SKY_INTEGRAL = 2.0 * math.pi  # sum of the normalised sky's luminance x dOmega over the hemisphere
 
@@ -156,15 +157,25 @@ class SunSky(CompactSun, LightingModel):
             self._cache["prior"] = None if prior is None else prior.widened(sunsky_prior.FEATURE_MIN_STD)
         return self._cache["prior"]
 
+    @property
+    def scored_prior(self):
+        """The prior the estimator scores: :attr:`prior` marginalised over the sun's elevation
+        (``sunsky_prior.SCORED_FEATURES``), or None without a prior."""
+        if "scored_prior" not in self._cache:
+            prior = self.prior
+            self._cache["scored_prior"] = None if prior is None else prior.marginal(list(sunsky_prior.SCORED_FEATURES))
+        return self._cache["scored_prior"]
+
     def prior_features(self, params: np.ndarray) -> np.ndarray:
         return sunsky_prior.features_numpy(params)
 
     def prior_nll(self, params: torch.Tensor) -> torch.Tensor:
-        """GMM negative log-likelihood of the prior features (0 without a prior)."""
-        prior = self.prior
+        """GMM negative log-likelihood of the prior features but the sun's elevation (the GMM
+        marginalised over it: :attr:`scored_prior`); 0 without a prior."""
+        prior = self.scored_prior
         if prior is None:
             return super().prior_nll(params)
-        return prior.nll_torch(sunsky_prior.features_torch(params))
+        return prior.nll_torch(sunsky_prior.features_torch(params)[:, _SCORED_INDEX])
 
     def probe_starts(self, probe_flat: np.ndarray) -> np.ndarray:
         """Starts for ``fit-probe``: the sun at the probe's brightest sky texel."""

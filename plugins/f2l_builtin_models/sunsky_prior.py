@@ -12,6 +12,9 @@ camera's heading (no azimuth) and to exposure (intensity ratios only):
     sky_log_rg, sky_log_bg      log(w_sky_r / w_sky_g), log(w_sky_b / w_sky_g)
     sun_log_rg, sun_log_bg      the same for w_sun (ε = 1e-6 of lum(w_sun) added)
 
+The estimator's prior term scores ``SCORED_FEATURES``, every feature but the elevation (the GMM
+marginalised over it): no sun elevation is preferred.
+
 GMM starts: each component mean becomes parameters with w_sky of luminance 1, w_sun from the
 ratio and colours, at 4 azimuths (±45°, ±135°); the estimator rescales intensities to the
 observation. Probe starts (``fit-probe``): the sun at the brightest upper-hemisphere texel, its
@@ -30,6 +33,12 @@ FEATURE_NAMES = ["sun_elevation_rad", "log_turbidity", "log_kappa", "log_sun_to_
 # Floor on each feature's standard deviation in every GMM component (GmmPrior.widened):
 # elevation 6 deg, turbidity x1.3, kappa x1.6, sun-to-sky ratio x1.6, colours 10%.
 FEATURE_MIN_STD = (0.1, 0.25, 0.5, 0.5, 0.1, 0.1, 0.1, 0.1)
+# The features the estimator's prior term scores: all but the sun's elevation, over which the GMM is
+# marginalised (GmmPrior.marginal). The corpus draws the elevation uniformly (5-80 deg); six
+# components over it leave a lumpy marginal (modes at 8, 14, 19, 33 and 66 deg, little mass at
+# 40-55 deg or above 75 deg) that pulled suns the face cannot place (behind the head, hidden in
+# their glow) toward those modes (docs/experiments/sun_profile.md, "The prior's elevation").
+SCORED_FEATURES = tuple(name for name in FEATURE_NAMES if name != "sun_elevation_rad")
 REC709_LUMA = (0.2126, 0.7152, 0.0722)
 RATIO_FLOOR = 1e-3
 START_AZIMUTHS_RAD = (-0.75 * math.pi, -0.25 * math.pi, 0.25 * math.pi, 0.75 * math.pi)
