@@ -65,9 +65,9 @@ MIN_WEIGHT = 1e-6  # mass points below this share of the largest are left out (t
 LEVELS = (0.68, 0.90)
 # fitted (f2l.evaluation.calibration.fit_uncertainty_model) on every tuning-only sunny face there is: the
 # 56 of `make eval-real`'s tuning part and the 147 of `make eval-framings`' seed-0 renders (full, half and
-# group framings, each face alone), with the defaults of 2026-11-28 (the sunsky prior marginalised over the
-# sun's elevation), tau = 30; docs/experiments/uncertainty.md "Calibrated on 203 tuning faces" and
-# "Recalibrated after the prior's change"
+# group framings, each face alone), with the defaults of 2026-11-28 (the built-in sun model's prior
+# marginalised over the sun's elevation), tau = 30; docs/experiments/uncertainty.md "Calibrated on 203
+# tuning faces" and "Recalibrated after the prior's change"
 CONE_COEFFICIENTS = (1.744, 0.2035, -0.5819, 0.7590)  # beta over [1, ln p_90, lit, overcast]
 CONE_QUANTILES = (1.445, 2.985)  # k_68, k_90
 MAE_COEFFICIENTS = (0.06844, 0.2936, -0.05000, 0.3098)  # over [1, r_90 / 90°, lit, relative residual]
