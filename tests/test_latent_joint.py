@@ -91,3 +91,17 @@ def test_a_fixed_albedo_is_every_face_albedo(faces, ae):
     joint = estimate_joint_latent([_obs(f, str(i)) for i, f in enumerate(faces[:2])], ae, cfg)
     assert all(np.allclose(s.albedo, (0.5, 0.3, 0.2)) for s in joint.faces if s.used)
     assert np.isfinite(joint.result.probe).all() and np.isfinite(joint.result.params).all()
+
+
+def test_the_latent_consensus_needs_two_faces_that_agree_on_a_light():
+    """Scores of each face's own light on every face: where two faces agree on a light it decides
+    (the third face's ratio above the limit); where every light suits its own face alone there is
+    no consensus (None), whatever the mean ratios."""
+    from f2l.estimate.latent_joint import _consensus
+
+    own = {j: [{"score": 1.0}] for j in range(3)}
+    agree = {0: {"score": [1.0, 1.5, 9.0]}, 1: {"score": [1.4, 1.0, 8.0]}, 2: {"score": [5.0, 6.0, 1.0]}}
+    support = _consensus(agree, own, [0, 1, 2], 2.0)
+    assert support is not None and support[0] <= 2.0 and support[1] <= 2.0 and support[2] > 2.0
+    alone = {0: {"score": [1.0, 3.0, 3.0]}, 1: {"score": [9.0, 1.0, 9.0]}, 2: {"score": [9.0, 9.0, 1.0]}}
+    assert _consensus(alone, own, [0, 1, 2], 2.0) is None

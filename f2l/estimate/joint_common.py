@@ -14,6 +14,8 @@ from f2l.estimate.observation import EstimationError, FaceObservation, usable_pi
 
 SIGMA_MODEL = 0.05  # the relative misfit of the forward model itself, added to each face's noise
 DISAGREE_RATIO = 2.0  # agreement above this: the face does not share the group's light
+# faces that must agree on one light before it decides, ahead of any fit, who joins (1: any light)
+CONSENSUS_MIN_VOTES = 2
 DARK_RATIO = 0.3  # a face whose albedo is below this x its photo-mates' median is left out (in shade)
 # a face that shows less than SUN_SEEN_MIN of the group's sun, where the sun makes at least
 # SUN_SHARE_MIN of its predicted shading and a photo-mate shows at least SUN_SEEN_PEER of it, is

@@ -9,7 +9,7 @@ ways:
    (``sun_search.relative_residual``). Before any fit, with three faces or more, every face's own
    best light is tried on every face; the light most faces agree with (within the limit,
    ``DISAGREE_RATIO`` by default) decides who joins (:func:`consensus`): a shaded face cannot pull
-   the fit's sun away first. Where no light suits two faces, none leaves before the fit.
+   the fit's sun away first. Where no light suits two faces (``joint_common.CONSENSUS_MIN_VOTES``), none leaves before the fit.
 2. After each fit, while the worst face's agreement with the fitted light exceeds the limit, it is
    left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
    its own light (the darker one leaves the group).
@@ -33,11 +33,10 @@ import torch
 
 from f2l.estimate import sun_search
 from f2l.estimate.config import EstimatorConfig
+from f2l.estimate import joint_common
 from f2l.estimate.joint_common import DARK_RATIO, SUN_SEEN_MIN, SUN_SEEN_PEER, SUN_SHARE_MIN, darkness
 from f2l.estimate.problem import FaceProblem
 from f2l.lighting.grid import LatLongGrid
-
-CONSENSUS_MIN_VOTES = 2  # faces that must agree on a light before it decides who joins (1: any light)
 
 __all__ = ["agreements", "consensus", "face_scores", "leaving", "sees_no_sun", "shared_setup", "sun_seen_of"]
 
@@ -162,7 +161,7 @@ def consensus(problems: dict[int, FaceProblem], active: list[int], cfg: Estimato
         ratio[i] = {j: _ratio(problems[j], texel, blocks, w_sky, w_sun, cfg) for j in active}
     votes = {i: sum(r <= limit for r in ratio[i].values()) for i in active}
     best = min(active, key=lambda i: (-votes[i], float(np.mean(list(ratio[i].values())))))
-    return ratio[best] if votes[best] >= CONSENSUS_MIN_VOTES else None
+    return ratio[best] if votes[best] >= joint_common.CONSENSUS_MIN_VOTES else None
 
 
 def _ratio(p: FaceProblem, texel: int, sky_block_means, w_sky, w_sun, cfg: EstimatorConfig) -> float:

@@ -45,6 +45,7 @@ import torch.nn.functional as F
 
 from f2l.estimate.config import EstimateResult, EstimatorConfig
 from f2l.estimate.estimator import estimate
+from f2l.estimate import joint_common
 from f2l.estimate.joint_common import DARK_RATIO, DISAGREE_RATIO, FaceShare, JointResult, darkness, face_noise, face_weights
 from f2l.estimate.latent import (SEARCH_REFINE, LatentSkyProblem, _probe_with_ground, fit_starts, latent_params,
                                  latent_sun_uncertainty, pick_starts)
@@ -87,11 +88,12 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
     agreement: dict[int, float] = {}
     if disagree_ratio is not None and len(active) > 2:  # a pair has no majority
         support = _consensus(lights, own, active, disagree_ratio)
-        agreement.update(support)
-        for i in active:
-            if support[i] > disagree_ratio:
-                _leave_out(shares[i], support[i], disagree_ratio, " under the light most faces agree with")
-        active = [i for i in active if support[i] <= disagree_ratio]
+        if support is not None:  # two faces or more agree on one light
+            agreement.update(support)
+            for i in active:
+                if support[i] > disagree_ratio:
+                    _leave_out(shares[i], support[i], disagree_ratio, " under the light most faces agree with")
+            active = [i for i in active if support[i] <= disagree_ratio]
     while True:
         if len(active) == 1:
             result, fit = estimate(observations[active[0]], model, cfg), None
@@ -175,14 +177,17 @@ def _own_lights(problems: dict[int, LatentSkyProblem], own: dict[int, list[dict]
                 "score": {j: float(fits[j][1][a]) for j in faces}} for a, i in enumerate(faces)}
 
 
-def _consensus(lights: dict[int, dict], own: dict[int, list[dict]], active: list[int], limit: float) -> dict[int, float]:
+def _consensus(lights: dict[int, dict], own: dict[int, list[dict]], active: list[int],
+               limit: float) -> dict[int, float] | None:
     """Each face's agreement with the light most faces agree with, among the faces' own best
-    lights of the search (module docstring)."""
+    lights of the search (module docstring); None when no light suits two faces
+    (``joint_common.CONSENSUS_MIN_VOTES``, as f2l.estimate.joint_faces.consensus)."""
     def ratio(a: int, j: int) -> float:
         return lights[a]["score"][j] / max(own[j][0]["score"], 1e-12)
 
-    best = min(active, key=lambda a: (-sum(ratio(a, j) <= limit for j in active), float(np.mean([ratio(a, j) for j in active]))))
-    return {j: ratio(best, j) for j in active}
+    votes = {a: sum(ratio(a, j) <= limit for j in active) for a in active}
+    best = min(active, key=lambda a: (-votes[a], float(np.mean([ratio(a, j) for j in active]))))
+    return {j: ratio(best, j) for j in active} if votes[best] >= joint_common.CONSENSUS_MIN_VOTES else None
 
 
 def _joint_starts(probs: list[LatentSkyProblem], weights: np.ndarray, coarse: list[torch.Tensor], lights: list[dict],
