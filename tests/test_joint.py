@@ -173,6 +173,47 @@ def test_the_sun_seen_rule_needs_a_photo_mate_that_shows_the_sun():
     assert sees_no_sun(seen, [1, 2, 3], groups) is None  # face 0 already out
 
 
+def test_the_relative_sun_seen_rule_needs_both_signs_of_shade():
+    from f2l.estimate.joint_faces import sees_less_sun
+
+    groups = np.array([0, 0, 0, 1])
+    seen = {0: (0.3, 0.4), 1: (0.9, 0.4), 2: (1.1, 0.3), 3: (0.01, 0.5)}
+    shade = {0: 0.6, 1: 1.2, 2: 1.0, 3: 0.5}
+    face, median = sees_less_sun(seen, shade, [0, 1, 2, 3], groups)
+    assert face == 0 and median == pytest.approx(1.0)  # 0.3 < 0.6 x 1.0, and 0.6x the mates' albedo
+    assert sees_less_sun(seen, {**shade, 0: 0.9}, [0, 1, 2, 3], groups) is None  # as bright as its mates: a face turned away
+    assert sees_less_sun({**seen, 0: (0.7, 0.4)}, shade, [0, 1, 2, 3], groups) is None  # shows most of the mates' sun
+    assert sees_less_sun({**seen, 1: (0.0, 0.4), 2: (0.0, 0.4)}, shade, [0, 1, 2, 3], groups) is None  # mates show none
+    assert sees_less_sun(seen, shade, [1, 2, 3], groups) is None  # face 0 already out; face 3 has no photo-mate
+
+
+def test_a_face_in_thin_shade_is_left_out_by_the_relative_rule(faces, skies, sunsky):
+    """One photo, one exposure, one skin, a clear sky whose sun carries most of the light: three
+    faces in the sun and one whose sun is cut to 30% (a thin canopy: too much sun for the absolute
+    limit of the sun seen). The thin-shade face shows under half of its photo-mates' sun and reads
+    darker than them; with the residual tests out of the way it leaves with the relative rule's
+    reason, and the sunlit faces stay."""
+    from f2l.synth.render import render_face
+
+    near_sun = GRID.directions_flat @ SUN > math.cos(math.radians(12.0))
+    sunny = skies[0].copy().reshape(-1, 3)
+    sunny[~near_sun] *= 0.3
+    thin = sunny.copy()
+    thin[near_sun] *= 0.3
+    away = ~near_sun & (GRID.directions_flat @ SUN < 0.5) & (GRID.directions_flat[:, 1] > 0.2)  # sky far from the sun
+    observations = []
+    for i, (yaw, probe) in enumerate([(-30.0, sunny), (5.0, sunny), (35.0, sunny), (-10.0, thin)]):
+        f = render_face(GRID, probe.reshape(skies[0].shape), np.random.default_rng(20 + i), image_size=72,
+                        albedo=faces[1].albedo, head_pose_deg=(yaw, -4.0, 2.0), noise_sigma=0.004)
+        # each render is exposed on its own: back to the probe's units, as one photo's faces are
+        gain = 1.0 / float(np.median(f.gt_probe.reshape(-1, 3)[away, 1] / probe[away, 1]))
+        observations.append(_obs(f, str(i), gain=gain))
+    joint = estimate_joint(observations, sunsky, CFG, disagree_ratio=100.0)
+    assert [s.used for s in joint.faces] == [True, True, True, False]
+    assert "its photo-mates' median" in joint.faces[3].reason and "in shade" in joint.faces[3].reason
+    assert all(s.reason == "" for s in joint.faces[:3])
+
+
 def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):
     """A photo 2.5x darker: its face's exposure x albedo (all the data can tell apart) comes out
     0.4x that of the same face in the first photo (channel mean, within 10%), and the sun holds."""

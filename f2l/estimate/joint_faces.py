@@ -16,7 +16,11 @@ ways:
 3. A face that shows none of the joint light's sun while a photo-mate shows it
    (``sun_search.sun_seen``: its shading fitted as free multiples of the light's sky part and sun
    part; below ``SUN_SEEN_MIN`` of the sun where the sun makes ``SUN_SHARE_MIN`` of its shading)
-   is left out: a face in an occluder's shadow is lit by the sky alone.
+   is left out: a face in an occluder's shadow is lit by the sky alone. So is a face that shows less
+   than ``SUN_SEEN_RELATIVE`` x the median of its photo-mates' sun seen (that median counted up to 1)
+   while it reads darker than ``DIM_RATIO`` x their albedo (:func:`sees_less_sun`): neither sign
+   alone tells shade from a darker skin or a face turned from the sun; together they find the shaded
+   faces the absolute limit misses (a sun that carries a third of the light, a board that grazes).
 4. A face far darker than its photo's other faces under the joint light (albedo below
    ``DARK_RATIO`` x their median) is left out too: under the group's sun a face in shade reads as
    a much darker skin.
@@ -38,7 +42,8 @@ from f2l.estimate.joint_common import DARK_RATIO, SUN_SEEN_MIN, SUN_SEEN_PEER, S
 from f2l.estimate.problem import FaceProblem
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["agreements", "consensus", "face_scores", "leaving", "sees_no_sun", "shared_setup", "sun_seen_of"]
+__all__ = ["agreements", "consensus", "face_scores", "leaving", "sees_less_sun", "sees_no_sun", "shared_setup",
+           "sun_seen_of"]
 
 
 def leaving(fit, active: list[int], groups, agreement: dict[int, float], seen: dict[int, tuple[float, float]],
@@ -61,6 +66,12 @@ def leaving(fit, active: list[int], groups, agreement: dict[int, float], seen: d
         return blind, (f"shows {seen[blind][0]:.2f} of the group's sun where the sun makes {seen[blind][1]:.0%} of "
                        f"its shading under the group's light (limit {SUN_SEEN_MIN:.2f}), as a face in shade does; "
                        "left out"), shade
+    dim = sees_less_sun(seen, shade, active, groups)
+    if dim is not None:
+        face, mates = dim
+        return face, (f"shows {seen[face][0]:.2f} of the group's sun, {seen[face][0] / mates:.2f}x its photo-mates' "
+                      f"median (limit {joint_common.SUN_SEEN_RELATIVE:.2f}), and reads {shade[face]:.2f}x their albedo "
+                      f"(limit {joint_common.DIM_RATIO:.2f}), as a face in shade does; left out"), shade
     worst = min(active, key=lambda i: shade[i])
     if shade[worst] >= DARK_RATIO:
         return None, "", shade
@@ -99,6 +110,29 @@ def sees_no_sun(seen: dict[int, tuple[float, float]], active: list[int], groups)
     blind = [i for i in told if seen[i][0] < SUN_SEEN_MIN
              and any(seen[j][0] >= SUN_SEEN_PEER for j in told if j != i and groups[j] == groups[i])]
     return min(blind, key=lambda i: seen[i][0]) if blind else None
+
+
+def sees_less_sun(seen: dict[int, tuple[float, float]], shade: dict[int, float], active: list[int],
+                  groups) -> tuple[int, float] | None:
+    """The face that shows least of the group's sun relative to its photo-mates, where it shows
+    below ``SUN_SEEN_RELATIVE`` x their median (counted up to ``SUN_SEEN_MATES_CAP``) and reads below
+    ``DIM_RATIO`` x their albedo (``shade``: :func:`~f2l.estimate.joint_common.darkness`), with that
+    median; None if none (constants of :mod:`f2l.estimate.joint_common`). Mates that show no sun
+    between them (median 0) tell nothing."""
+    found = []
+    for i in active:
+        if i not in seen or not np.isfinite(seen[i][0]) or shade.get(i, 1.0) >= joint_common.DIM_RATIO:
+            continue
+        mates = [seen[j][0] for j in active if j != i and j in seen and groups[j] == groups[i] and np.isfinite(seen[j][0])]
+        if not mates or float(np.median(mates)) <= 0.0:
+            continue
+        median = min(float(np.median(mates)), joint_common.SUN_SEEN_MATES_CAP)
+        if seen[i][0] < joint_common.SUN_SEEN_RELATIVE * median:
+            found.append((seen[i][0] / median, i, median))
+    if not found:
+        return None
+    _, face, median = min(found)
+    return face, median
 
 
 def _search_light(fit):
