@@ -214,6 +214,30 @@ def test_a_face_in_thin_shade_is_left_out_by_the_relative_rule(faces, skies, sun
     assert all(s.reason == "" for s in joint.faces[:3])
 
 
+def test_two_faces_of_two_photos_that_disagree_keep_the_one_that_sees_its_sun(faces, sunsky):
+    """A session's pair, one face a photo (two exposures: their darkness cannot be compared): a face
+    in the sun and one in the shade disagree; the shaded one, whose own best light lights less of
+    it, leaves whichever comes first, and the pair's light is the sunlit face's own."""
+    from f2l.estimate import joint_faces
+
+    alone = estimate(_obs(faces[0], "0"), sunsky, CFG)
+    for order in ((0, 3), (3, 0)):
+        observations = [_obs(faces[i], str(i)) for i in order]
+        joint = estimate_joint(observations, sunsky, CFG, exposure_group=["a", "b"])
+        used = {i: s.used for i, s in zip(order, joint.faces)}
+        assert used == {0: True, 3: False}
+        assert "two faces disagree" in joint.faces[order.index(3)].reason
+        assert _angle_deg(joint.result.sun_direction, alone.sun_direction) < 1e-6
+    import torch
+
+    from f2l.estimate.problem import FaceProblem
+
+    lit = {}
+    for i in (0, 3):
+        lit[i] = joint_faces.own_sun_lit(FaceProblem(_obs(faces[i], str(i)), sunsky, CFG, torch.float64))
+    assert lit[0] > lit[3]
+
+
 def test_faces_of_two_photos_with_different_exposures_share_the_light(faces, sunsky):
     """A photo 2.5x darker: its face's exposure x albedo (all the data can tell apart) comes out
     0.4x that of the same face in the first photo (channel mean, within 10%), and the sun holds."""

@@ -105,3 +105,25 @@ def test_the_latent_consensus_needs_two_faces_that_agree_on_a_light():
     assert support is not None and support[0] <= 2.0 and support[1] <= 2.0 and support[2] > 2.0
     alone = {0: {"score": [1.0, 3.0, 3.0]}, 1: {"score": [9.0, 1.0, 9.0]}, 2: {"score": [9.0, 9.0, 1.0]}}
     assert _consensus(alone, own, [0, 1, 2], 2.0) is None
+
+
+def test_a_pair_of_two_photos_that_disagree_keeps_the_face_that_sees_its_sun(faces, ae, monkeypatch):
+    """The pair rule's wiring for latent skies: two faces of two photos (their darkness cannot be
+    compared) made to disagree leave out the one whose own best sky's sun lights less of it,
+    whichever comes first."""
+    import f2l.estimate.latent_joint as lj
+    from f2l.estimate.latent import LatentSkyProblem
+
+    monkeypatch.setattr(lj, "_ratio", lambda p, sky, own, g: 10.0)  # every face disagrees with the pair's light
+    problems = {i: LatentSkyProblem(_obs(faces[i], str(i)), ae, CFG) for i in (0, 3)}
+    g0 = CFG.ground_albedo_init
+    own = {i: p.refine_search(p.coarse_scores(g0), g0) for i, p in problems.items()}
+    lights = lj._own_lights(problems, own, g0)
+    lit = {i: lj._own_sun_lit(problems[i], lights[i]) for i in (0, 3)}
+    assert all(0.0 <= v <= 1.0 for v in lit.values()) and lit[0] != lit[3]
+    leaves = min(lit, key=lit.get)
+    for order in ((0, 3), (3, 0)):
+        joint = estimate_joint_latent([_obs(faces[i], str(i)) for i in order], ae, CFG, exposure_group=["a", "b"])
+        left = [i for i, s in zip(order, joint.faces) if not s.used]
+        assert left == [leaves]
+        assert "two faces disagree" in joint.faces[order.index(leaves)].reason

@@ -12,7 +12,8 @@ ways:
    the fit's sun away first. Where no light suits two faces (``joint_common.CONSENSUS_MIN_VOTES``), none leaves before the fit.
 2. After each fit, while the worst face's agreement with the fitted light exceeds the limit, it is
    left out and the rest are fitted afresh. Two faces that disagree have no majority: each keeps
-   its own light (the darker one leaves the group).
+   its own light (the darker one leaves the group; with no photo-mates to compare their darkness,
+   as in a session's one face a photo, the one whose own best sun lights less of it, :func:`own_sun_lit`).
 3. A face that shows none of the joint light's sun while a photo-mate shows it
    (``sun_search.sun_seen``: its shading fitted as free multiples of the light's sky part and sun
    part; below ``SUN_SEEN_MIN`` of the sun where the sun makes ``SUN_SHARE_MIN`` of its shading)
@@ -42,7 +43,7 @@ from f2l.estimate.joint_common import DARK_RATIO, SUN_SEEN_MIN, SUN_SEEN_PEER, S
 from f2l.estimate.problem import FaceProblem
 from f2l.lighting.grid import LatLongGrid
 
-__all__ = ["agreements", "consensus", "face_scores", "leaving", "sees_less_sun", "sees_no_sun", "shared_setup",
+__all__ = ["agreements", "consensus", "face_scores", "leaving", "own_sun_lit", "sees_less_sun", "sees_no_sun", "shared_setup",
            "sun_seen_of"]
 
 
@@ -56,9 +57,14 @@ def leaving(fit, active: list[int], groups, agreement: dict[int, float], seen: d
     worst = max(active, key=lambda i: agreement.get(i, 0.0))
     if agreement.get(worst, 0.0) > limit:
         if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
-            worst = min(active, key=lambda i: shade[i])
-            return worst, (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own best, limit "
-                           f"{limit:.2f}): each keeps its own estimate"), shade
+            a, b = active
+            if abs(shade[a] - shade[b]) > 1e-9:
+                worst = min(active, key=lambda i: shade[i])
+            else:  # no photo-mates to compare with (one face a photo): the one that sees its sun less
+                lit = {i: own_sun_lit(fit.problems[j]) for j, i in enumerate(active)}
+                worst = min(active, key=lambda i: lit[i])
+            return worst, (f"the group's two faces disagree (residual {max(agreement[a], agreement[b]):.2f}x its own "
+                           f"best, limit {limit:.2f}): each keeps its own estimate"), shade
         return worst, (f"disagrees with the group's light: residual {agreement[worst]:.2f}x its own best "
                        f"(limit {limit:.2f}); left out"), shade
     blind = sees_no_sun(seen, active, groups)
@@ -110,6 +116,20 @@ def sees_no_sun(seen: dict[int, tuple[float, float]], active: list[int], groups)
     blind = [i for i in told if seen[i][0] < SUN_SEEN_MIN
              and any(seen[j][0] >= SUN_SEEN_PEER for j in told if j != i and groups[j] == groups[i])]
     return min(blind, key=lambda i: seen[i][0]) if blind else None
+
+
+def own_sun_lit(p: FaceProblem) -> float:
+    """The share of the face's pixels that the sun of its own best search light faces (n · d > 0;
+    0 where its best light has no sun): how well the face sees the sun it reads. Of two faces that
+    disagree with no photo-mates to compare their darkness, the one that sees its sun less leaves."""
+    from f2l.estimate.uncertainty import lit_fraction
+
+    sc = face_scores(p, shared_setup(p), p.cfg)
+    flat = int(np.argmin(sc.total))
+    if float(sc.sky_total.min()) < float(sc.total.flat[flat]):
+        return 0.0
+    texel = int(sc.texels[flat // sc.total.shape[1]])
+    return lit_fraction(p.transport.normals, p.grid.directions_flat[texel])
 
 
 def sees_less_sun(seen: dict[int, tuple[float, float]], shade: dict[int, float], active: list[int],

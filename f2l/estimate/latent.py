@@ -75,6 +75,7 @@ class LatentSkyProblem:
             raise EstimationError(f"grid {grid.height}x{grid.width}: the sky rows and columns must split into "
                                   f"{BLOCK[0]}x{BLOCK[1]} blocks for the latent-sky transport")
         self.sky = SkyTransport(transport, grid, block=BLOCK, core_texels=cfg.sun_core_texels)
+        self.normals = transport.normals  # (N, 3) unit, the used pixels'
         self.t_blk = self.sky.t_blk.float()  # (N, nb)
         self.nbr, self.nbc = self.sky.shape_blocks
         ground_rows = grid.height - self.rows

@@ -111,10 +111,14 @@ def estimate_joint_latent(observations: list[FaceObservation], model, cfg: Estim
         worst = max(active, key=lambda i: agreement[i])
         if agreement[worst] > disagree_ratio:
             if len(active) == 2:  # no majority: each face keeps its own light (the darker one leaves)
-                worst = min(active, key=lambda i: shade[i])
+                a, b = active
+                if abs(shade[a] - shade[b]) > 1e-9:
+                    worst = min(active, key=lambda i: shade[i])
+                else:  # no photo-mates to compare with (one face a photo): the one that sees its sun less
+                    worst = min(active, key=lambda i: _own_sun_lit(problems[i], lights[i]))
                 shares[worst].used = False
-                shares[worst].reason = (f"the group's two faces disagree (residual {agreement[worst]:.2f}x its own "
-                                        f"best, limit {disagree_ratio:.2f}): each keeps its own estimate")
+                shares[worst].reason = (f"the group's two faces disagree (residual {max(agreement[a], agreement[b]):.2f}x "
+                                        f"its own best, limit {disagree_ratio:.2f}): each keeps its own estimate")
             else:
                 _leave_out(shares[worst], agreement[worst], disagree_ratio, "")
         else:
@@ -164,6 +168,16 @@ def _exposure_indices(groups) -> np.ndarray:
 def _ratio(p: LatentSkyProblem, sky: torch.Tensor, own: list[dict], ground_albedo: float) -> float:
     """The face's score under the sky (1, 3, rows, W) over its score under its own search's best."""
     return float(p.full_scores(sky, ground_albedo)[1][0]) / max(own[0]["score"], 1e-12)
+
+
+def _own_sun_lit(p: LatentSkyProblem, light: dict) -> float:
+    """The share of the face's pixels facing the sun (the brightest texel) of its own best light
+    (as :func:`f2l.estimate.joint_faces.own_sun_lit` for compact-sun models)."""
+    from f2l.estimate.uncertainty import lit_fraction
+
+    sky = p.rotated_candidates([light["k"]], [light["j"]])[0]  # (3, rows, W)
+    texel = int(torch.einsum("c,crw->rw", p.luma.to(sky.dtype), sky).reshape(-1).argmax())
+    return lit_fraction(p.normals, p.grid.directions_flat[texel])
 
 
 def _own_lights(problems: dict[int, LatentSkyProblem], own: dict[int, list[dict]], ground_albedo: float) -> dict[int, dict]:
