@@ -79,14 +79,15 @@ eval-framings: $(STAMP)
 	$(BIN)/f2l eval framings $(EVAL_FRAMINGS)/half $(EVAL_FRAMINGS)/full $(EVAL_FRAMINGS)/group \
 		--fitted $(EVAL_FRAMINGS)/fitted --est $(EVAL_FRAMINGS)/est_alone --out $(EVAL_FRAMINGS)/alone
 
-# One light for many faces (f2l.estimate.joint; docs/experiments/joint_estimate.md): 40 path-traced group
-# photos (2-5 people under one light) on seed 0 to tune on and 40 on seed 1 to report on, fitted, then each
-# photo's first 1, 2, 3 and 5 faces estimated one at a time and jointly (sunsky) and scored against the truth;
-# tables in build/eval_groups/{tune,report}/groups.md. About 45 min on 2 cores; the renders are resumable.
+# One light for many faces (f2l.estimate.joint; docs/experiments/joint_estimate.md): 80 path-traced group
+# photos (2-5 people under one light) on seed 0 to tune on and 80 on seed 1 to report on (40 each until
+# 2026-11-28: one photo moved a set's mean by 3 degrees), fitted, then each photo's first 1, 2, 3 and 5 faces
+# estimated one at a time and jointly (sunsky) and scored against the truth; tables in
+# build/eval_groups/{tune,report}/groups.md. About 100 min on 2 cores; the renders are resumable.
 EVAL_GROUPS := build/eval_groups
 eval-groups: $(STAMP)
-	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_tune --n 40 --seed 0 --image-px 1280 --spp 16 --json
-	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_report --n 40 --seed 1 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_tune --n 80 --seed 0 --image-px 1280 --spp 16 --json
+	$(BIN)/f2l eval render-faces --framing group --out $(EVAL_GROUPS)/render_report --n 80 --seed 1 --image-px 1280 --spp 16 --json
 	$(BIN)/f2l fit-faces $(EVAL_GROUPS)/render_tune/photos --out $(EVAL_GROUPS)/fitted_tune --json
 	$(BIN)/f2l fit-faces $(EVAL_GROUPS)/render_report/photos --out $(EVAL_GROUPS)/fitted_report --json
 	$(BIN)/f2l eval groups $(EVAL_GROUPS)/render_tune --fitted $(EVAL_GROUPS)/fitted_tune --out $(EVAL_GROUPS)/tune
