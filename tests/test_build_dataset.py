@@ -420,6 +420,27 @@ def _entries(stage_dir: Path) -> dict[str, dict]:
             for d in sorted(stage_dir.iterdir()) if not d.name.startswith(".tmp-") and (d / "done").is_file()}
 
 
+def test_an_entry_begun_during_the_build_by_a_killed_builds_task_is_swept(tree, reference, tmp_path, monkeypatch):
+    """A Ray task of a killed build can outlive its driver and begin a cache entry after the new
+    build's first sweep (it cannot publish: the build token); the build sweeps again when its
+    stages are done, so it leaves no temporary folder."""
+    import f2l.pipeline.run as run_mod
+
+    work, out = tmp_path / "work", tmp_path / "out"
+    real = run_mod.run_stages
+
+    def with_an_outliving_writer(spec, root, work_, out_, cache, *args, **kwargs):
+        stale = Path(work_) / "cache" / "fit-faces" / ".tmp-0123abcd-999999"
+        stale.mkdir(parents=True)
+        (stale / "landmarks.npz").write_bytes(b"half written")
+        return real(spec, root, work_, out_, cache, *args, **kwargs)
+
+    monkeypatch.setattr(run_mod, "run_stages", with_an_outliving_writer)
+    build_dataset(tree / "raw", work, out, tree / "pipeline.toml")
+    assert not list((work / "cache").glob("*/.tmp-*"))
+    assert_same_output(reference[2], out)
+
+
 def test_lock_stops_a_second_build(tree, tmp_path):
     import typer
     from typer.testing import CliRunner

@@ -163,6 +163,9 @@ def build_dataset(root, work, out, pipeline: Pipeline | str | os.PathLike | None
 
         run_stages(spec, root, work, out, cache, summary, landmarker_path, say, progress,
                    {"name": executor, "address": address, "workers": workers, "token": token})
+        # a Ray task of a killed build can outlive its driver and begin an entry after the first
+        # sweep (it cannot publish it: the token); none of this build's writers runs now
+        cache.sweep()
         _remember_root(root, work)
     summary.seconds = round(time.perf_counter() - t_start, 3)
     _append_log(work, {"utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
